@@ -1,0 +1,205 @@
+"""The rotation math, written once over an array namespace ``xp``.
+
+``xp`` is the ``numpy``, ``torch`` or ``jax.numpy`` module itself: the functions here use only what the
+three share (indexing with ``...``, arithmetic, comparisons, ``stack``/``reshape`` with ``axis``,
+``where``, ``sqrt``, ``finfo``). They do no validation and no dtype juggling: the backend modules do
+that once, in :mod:`diffquat._backend`, and then call into here in a floating dtype of at least 32 bits.
+
+Numerical rules every function here follows, so that it is differentiable everywhere and traceable by
+``torch.compile(fullgraph=True)``, ``torch.func`` and ``jax.jit``:
+
+- no Python ``if`` on array values and no reductions across the batch;
+- every branch of a ``where`` is finite for every input (the unused branch is fed a safe value), or
+  the selection happens before the singular operation, so reverse mode never multiplies 0 by inf.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+# Trailing shape of every array argument of every public core function, by argument name. The backend
+# modules validate against this table, so the error message and the docstring cannot drift apart.
+SHAPES: dict[str, dict[str, tuple[int, ...]]] = {}
+
+
+def op(**trailing: tuple[int, ...]) -> Callable[[F], F]:
+    """Register the trailing shape of each array argument of a core function."""
+
+    def register(fn: F) -> F:
+        SHAPES[fn.__name__] = trailing
+        return fn
+
+    return register
+
+
+def split_quaternion(q: Any, scalar_first: bool) -> tuple[Any, Any, Any, Any]:
+    """Components (w, x, y, z) of ``q`` in either storage order."""
+    if scalar_first:
+        return q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    return q[..., 3], q[..., 0], q[..., 1], q[..., 2]
+
+
+def join_quaternion(xp: Any, w: Any, x: Any, y: Any, z: Any, scalar_first: bool) -> Any:
+    """Stack components (w, x, y, z) into ``(..., 4)`` in the requested storage order."""
+    return xp.stack([w, x, y, z] if scalar_first else [x, y, z, w], axis=-1)
+
+
+def stack_matrix(xp: Any, entries: list[Any]) -> Any:
+    """Nine row-major entries of shape ``batch`` into one ``(*batch, 3, 3)`` array (a single stack)."""
+    flat = xp.stack(entries, axis=-1)
+    return xp.reshape(flat, (*flat.shape[:-1], 3, 3))
+
+
+def _negative_canonical(w: Any, x: Any, y: Any, z: Any) -> Any:
+    """True where the quaternion is not in canonical sign: w < 0, or w = 0 and the first non-zero of
+    (x, y, z) is negative. This is scipy's ``as_quat(canonical=True)`` rule."""
+    return (w < 0) | ((w == 0) & ((x < 0) | ((x == 0) & ((y < 0) | ((y == 0) & (z < 0))))))
+
+
+@op(q=(4,))
+def quaternion_to_matrix(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
+    """Rotation matrix of a quaternion of any non-zero norm.
+
+    Args:
+        q: quaternions, shape ``(..., 4)``: (w, x, y, z) if ``scalar_first`` else (x, y, z, w).
+            They need not be unit: ``q`` and ``c * q`` (c != 0) give the same matrix, so a network can
+            feed its raw 4-vector output. The zero quaternion (squared norm below the smallest normal
+            number of the compute dtype) gives the identity, with a finite (zero) gradient.
+        scalar_first: storage order of ``q``; the default is scalar first (w, x, y, z).
+
+    Returns:
+        Rotation matrices, shape ``(..., 3, 3)``, acting on column vectors: ``R @ v`` rotates ``v`` from
+        the local frame into the global frame (active rotation). Same dtype as ``q``.
+    """
+    w, x, y, z = split_quaternion(q, scalar_first)
+    n2 = w * w + x * x + y * y + z * z
+    # Dividing by |q|^2 here, instead of normalising q first, makes the map scale invariant for one
+    # division. The zero quaternion takes the s = 0 branch, which is the identity; the double where
+    # keeps 2 / n2 (and so its gradient) finite in the branch that is thrown away.
+    nonzero = n2 >= xp.finfo(n2.dtype).tiny
+    s = xp.where(nonzero, 2.0 / xp.where(nonzero, n2, 1.0), 0.0)
+    sx, sy, sz = s * x, s * y, s * z
+    xx, yy, zz = sx * x, sy * y, sz * z
+    xy, xz, yz = sx * y, sx * z, sy * z
+    wx, wy, wz = sx * w, sy * w, sz * w
+    return stack_matrix(
+        xp,
+        [
+            1.0 - (yy + zz), xy - wz, xz + wy,
+            xy + wz, 1.0 - (xx + zz), yz - wx,
+            xz - wy, yz + wx, 1.0 - (xx + yy),
+        ],
+    )  # fmt: skip
+
+
+@op(matrix=(3, 3))
+def matrix_to_quaternion(xp: Any, matrix: Any, *, scalar_first: bool = True) -> Any:
+    """Unit quaternion of a rotation matrix, in canonical sign.
+
+    Args:
+        matrix: rotation matrices, shape ``(..., 3, 3)``, column-vector convention. A matrix slightly
+            off SO(3) still gives a unit quaternion; any finite 3x3 matrix gives a finite result.
+        scalar_first: storage order of the result.
+
+    Returns:
+        Unit quaternions, shape ``(..., 4)``, in canonical sign: w > 0, and where w = 0 the first
+        non-zero of (x, y, z) is positive (scipy's ``as_quat(canonical=True)``).
+
+    Method: the four "pivots" ``t_k = 4 q_k^2`` are read off the diagonal, and the candidate
+    ``c_k = 4 q_k q`` is built from sums and differences of entries for the largest pivot only; the
+    result is ``c_k / |c_k|``. The pivots sum to 4 for *every* 3x3 matrix, so the largest is at least 1
+    and the normalisation never divides by a small number; there is no square root of a pivot at all,
+    so half-turns (where three pivots vanish) are as accurate and as smooth as any other rotation.
+    """
+    m00, m01, m02 = matrix[..., 0, 0], matrix[..., 0, 1], matrix[..., 0, 2]
+    m10, m11, m12 = matrix[..., 1, 0], matrix[..., 1, 1], matrix[..., 1, 2]
+    m20, m21, m22 = matrix[..., 2, 0], matrix[..., 2, 1], matrix[..., 2, 2]
+    t0 = 1.0 + m00 + m11 + m22
+    t1 = 1.0 + m00 - m11 - m22
+    t2 = 1.0 - m00 + m11 - m22
+    t3 = 1.0 - m00 - m11 + m22
+    # 4 q_i q_j for i != j, each from two entries.
+    wx, wy, wz = m21 - m12, m02 - m20, m10 - m01
+    xy, xz, yz = m01 + m10, m02 + m20, m12 + m21
+    # Select the candidate of the largest pivot (ties go to the lower index). Every candidate is finite,
+    # so the selection is safe for reverse mode, and it happens before the one division below.
+    use01 = xp.maximum(t0, t1) >= xp.maximum(t2, t3)
+    use0, use2 = t0 >= t1, t2 >= t3
+
+    def pick(c0: Any, c1: Any, c2: Any, c3: Any) -> Any:
+        return xp.where(use01, xp.where(use0, c0, c1), xp.where(use2, c2, c3))
+
+    w = pick(t0, wx, wy, wz)
+    x = pick(wx, t1, xy, xz)
+    y = pick(wy, xy, t2, yz)
+    z = pick(wz, xz, yz, t3)
+    # |c| >= the largest pivot >= 1, so this division is always safe. The canonical sign is folded
+    # into the same scale factor.
+    inv = 1.0 / xp.sqrt(w * w + x * x + y * y + z * z)
+    inv = xp.where(_negative_canonical(w, x, y, z), -inv, inv)
+    return join_quaternion(xp, w * inv, x * inv, y * inv, z * inv, scalar_first)
+
+
+@op(q=(4,))
+def standardize_quaternion(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
+    """The same rotation in canonical sign: ``q`` or ``-q``, whichever has w > 0, and where w = 0, the
+    one whose first non-zero of (x, y, z) is positive (scipy's ``as_quat(canonical=True)``).
+
+    Args:
+        q: quaternions, shape ``(..., 4)``, any norm (the norm is kept).
+        scalar_first: storage order of ``q`` and of the result.
+
+    Returns:
+        Shape ``(..., 4)``. The gradient is +1 or -1 times the identity, by the sign chosen.
+    """
+    w, x, y, z = split_quaternion(q, scalar_first)
+    flip = _negative_canonical(w, x, y, z)
+    return xp.where(flip[..., None], -q, q)
+
+
+@op(q=(4,))
+def normalize_quaternion(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
+    """``q / |q|``; the zero quaternion gives the identity quaternion.
+
+    Args:
+        q: quaternions, shape ``(..., 4)``. A quaternion whose squared norm is below the smallest
+            normal number of the compute dtype counts as zero and gives the identity, with a finite
+            (zero) gradient.
+        scalar_first: storage order of ``q`` and of the result.
+
+    Returns:
+        Unit quaternions, shape ``(..., 4)``, the sign of ``q`` kept.
+    """
+    w, x, y, z = split_quaternion(q, scalar_first)
+    n2 = w * w + x * x + y * y + z * z
+    nonzero = n2 >= xp.finfo(n2.dtype).tiny
+    # Double where: the discarded branch sees n2 = 1, so 1/sqrt and its derivative stay finite at 0.
+    inv = xp.where(nonzero, 1.0 / xp.sqrt(xp.where(nonzero, n2, 1.0)), 0.0)
+    return join_quaternion(xp, xp.where(nonzero, w * inv, 1.0), x * inv, y * inv, z * inv, scalar_first)
+
+
+@op(q=(4,))
+def wxyz_to_xyzw(xp: Any, q: Any) -> Any:
+    """Reorder scalar-first quaternions (w, x, y, z) to scalar-last (x, y, z, w); shape ``(..., 4)``."""
+    return xp.stack([q[..., 1], q[..., 2], q[..., 3], q[..., 0]], axis=-1)
+
+
+@op(q=(4,))
+def xyzw_to_wxyz(xp: Any, q: Any) -> Any:
+    """Reorder scalar-last quaternions (x, y, z, w) to scalar-first (w, x, y, z); shape ``(..., 4)``."""
+    return xp.stack([q[..., 3], q[..., 0], q[..., 1], q[..., 2]], axis=-1)
+
+
+@op(uniform=(3,))
+def quaternions_from_uniform(xp: Any, uniform: Any, *, scalar_first: bool = True) -> Any:
+    """Shoemake's map from three uniform [0, 1) numbers to a uniformly distributed unit quaternion, in
+    canonical sign. Shape ``(..., 3)`` to ``(..., 4)``. The random draw itself is the backend's."""
+    u1, u2, u3 = uniform[..., 0], uniform[..., 1], uniform[..., 2]
+    r1, r2 = xp.sqrt(1.0 - u1), xp.sqrt(u1)
+    a, b = 2.0 * xp.pi * u2, 2.0 * xp.pi * u3
+    w, x, y, z = r2 * xp.cos(b), r1 * xp.sin(a), r1 * xp.cos(a), r2 * xp.sin(b)
+    q = join_quaternion(xp, w, x, y, z, scalar_first)
+    return standardize_quaternion(xp, q, scalar_first=scalar_first)

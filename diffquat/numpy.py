@@ -1,0 +1,90 @@
+"""diffquat on NumPy: the reference backend (no autograd). Same names and semantics as
+:mod:`diffquat.torch` and :mod:`diffquat.jax`; see :mod:`diffquat` for the conventions."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from . import _core
+from ._backend import Backend, documented, shape_tuple
+
+__all__ = [
+    "matrix_to_quaternion",
+    "normalize_quaternion",
+    "quaternion_to_matrix",
+    "random_quaternions",
+    "standardize_quaternion",
+    "wxyz_to_xyzw",
+    "xyzw_to_wxyz",
+]
+
+
+def _convert(fname: str, argname: str, x: Any) -> NDArray[Any]:
+    return np.asarray(x)
+
+
+def _is_floating(dtype: Any) -> bool:
+    # ml_dtypes' bfloat16 (shipped with jax) is not a np.floating subtype but is accepted all the same.
+    return bool(np.issubdtype(dtype, np.floating)) or np.dtype(dtype).name == "bfloat16"
+
+
+_B = Backend(
+    xp=np,
+    convert=_convert,
+    is_floating=_is_floating,
+    astype=lambda x, dtype: x.astype(dtype),
+    float32=np.dtype(np.float32),
+)
+
+
+@documented(_core.quaternion_to_matrix)
+def quaternion_to_matrix(q: ArrayLike, *, scalar_first: bool = True) -> NDArray[Any]:
+    return _B(_core.quaternion_to_matrix, q, scalar_first=scalar_first)
+
+
+@documented(_core.matrix_to_quaternion)
+def matrix_to_quaternion(matrix: ArrayLike, *, scalar_first: bool = True) -> NDArray[Any]:
+    return _B(_core.matrix_to_quaternion, matrix, scalar_first=scalar_first)
+
+
+@documented(_core.standardize_quaternion)
+def standardize_quaternion(q: ArrayLike, *, scalar_first: bool = True) -> NDArray[Any]:
+    return _B(_core.standardize_quaternion, q, scalar_first=scalar_first)
+
+
+@documented(_core.normalize_quaternion)
+def normalize_quaternion(q: ArrayLike, *, scalar_first: bool = True) -> NDArray[Any]:
+    return _B(_core.normalize_quaternion, q, scalar_first=scalar_first)
+
+
+@documented(_core.wxyz_to_xyzw)
+def wxyz_to_xyzw(q: ArrayLike) -> NDArray[Any]:
+    return _B(_core.wxyz_to_xyzw, q)
+
+
+@documented(_core.xyzw_to_wxyz)
+def xyzw_to_wxyz(q: ArrayLike) -> NDArray[Any]:
+    return _B(_core.xyzw_to_wxyz, q)
+
+
+def random_quaternions(
+    shape: int | tuple[int, ...] = (),
+    *,
+    rng: np.random.Generator | int | None = None,
+    dtype: Any = np.float64,
+    scalar_first: bool = True,
+) -> NDArray[Any]:
+    """Unit quaternions uniformly distributed over rotations (Shoemake's method), in canonical sign.
+
+    Args:
+        shape: batch shape; the result has shape ``(*shape, 4)``.
+        rng: a ``numpy.random.Generator``, or a seed for ``numpy.random.default_rng``.
+        dtype: floating dtype of the result (default float64).
+        scalar_first: storage order of the result.
+    """
+    uniform = np.random.default_rng(rng).random((*shape_tuple(shape), 3))
+    q = _B(_core.quaternions_from_uniform, uniform, scalar_first=scalar_first)
+    return np.asarray(q).astype(dtype)

@@ -1,0 +1,92 @@
+"""diffquat on PyTorch. Same names and semantics as :mod:`diffquat.numpy` and :mod:`diffquat.jax`;
+see :mod:`diffquat` for the conventions. Dtype and device of the input are preserved."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from . import _core
+from ._backend import Backend, documented, shape_tuple
+
+__all__ = [
+    "matrix_to_quaternion",
+    "normalize_quaternion",
+    "quaternion_to_matrix",
+    "random_quaternions",
+    "standardize_quaternion",
+    "wxyz_to_xyzw",
+    "xyzw_to_wxyz",
+]
+
+
+def _convert(fname: str, argname: str, x: Any) -> Tensor:
+    # No silent conversion from lists or numpy arrays: it would pick a device and a dtype for the user.
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{fname}: expected {argname} to be a torch.Tensor, got {type(x).__name__}")
+    return x
+
+
+_B = Backend(
+    xp=torch,
+    convert=_convert,
+    is_floating=lambda dtype: dtype.is_floating_point,
+    astype=lambda x, dtype: x.to(dtype),
+    float32=torch.float32,
+)
+
+
+@documented(_core.quaternion_to_matrix)
+def quaternion_to_matrix(q: Tensor, *, scalar_first: bool = True) -> Tensor:
+    return _B(_core.quaternion_to_matrix, q, scalar_first=scalar_first)
+
+
+@documented(_core.matrix_to_quaternion)
+def matrix_to_quaternion(matrix: Tensor, *, scalar_first: bool = True) -> Tensor:
+    return _B(_core.matrix_to_quaternion, matrix, scalar_first=scalar_first)
+
+
+@documented(_core.standardize_quaternion)
+def standardize_quaternion(q: Tensor, *, scalar_first: bool = True) -> Tensor:
+    return _B(_core.standardize_quaternion, q, scalar_first=scalar_first)
+
+
+@documented(_core.normalize_quaternion)
+def normalize_quaternion(q: Tensor, *, scalar_first: bool = True) -> Tensor:
+    return _B(_core.normalize_quaternion, q, scalar_first=scalar_first)
+
+
+@documented(_core.wxyz_to_xyzw)
+def wxyz_to_xyzw(q: Tensor) -> Tensor:
+    return _B(_core.wxyz_to_xyzw, q)
+
+
+@documented(_core.xyzw_to_wxyz)
+def xyzw_to_wxyz(q: Tensor) -> Tensor:
+    return _B(_core.xyzw_to_wxyz, q)
+
+
+def random_quaternions(
+    shape: int | tuple[int, ...] = (),
+    *,
+    generator: torch.Generator | None = None,
+    dtype: torch.dtype | None = None,
+    device: torch.device | str | None = None,
+    scalar_first: bool = True,
+) -> Tensor:
+    """Unit quaternions uniformly distributed over rotations (Shoemake's method), in canonical sign.
+
+    Args:
+        shape: batch shape; the result has shape ``(*shape, 4)``.
+        generator: a ``torch.Generator`` to draw from (default: the global one).
+        dtype: floating dtype of the result (default ``torch.get_default_dtype()``).
+        device: device of the result (default: the current default device).
+        scalar_first: storage order of the result.
+    """
+    dtype = torch.get_default_dtype() if dtype is None else dtype
+    uniform = torch.rand(
+        (*shape_tuple(shape), 3), generator=generator, dtype=_B.compute_dtype(dtype), device=device
+    )
+    return _B(_core.quaternions_from_uniform, uniform, scalar_first=scalar_first).to(dtype)

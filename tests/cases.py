@@ -1,0 +1,279 @@
+"""The named cases and the one table of operations that drive the whole suite.
+
+Adding an operation to diffquat means adding one ``Op`` row to ``OPS``: values against the oracle,
+properties, gradients, transforms, dtypes and bad-input errors then run for it on every backend.
+Everything here is plain NumPy float64; the oracle is scipy's ``Rotation``, an independent
+implementation, wherever scipy has the operation.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+DTYPES = ("float64", "float32", "float16", "bfloat16")
+
+# Tolerances, the one place they are written down. VALUE_TOL: max abs error of an op's output against
+# the float64 oracle evaluated on the very values the backend received (so input rounding is not
+# counted, only the computation and the rounding of the output). For 16-bit types this is a few units
+# in the last place of numbers of magnitude 1: the computation itself runs in float32.
+VALUE_TOL = {"float64": 1e-12, "float32": 2e-6, "float16": 2e-3, "bfloat16": 1.6e-2}
+# R -> q -> R, max abs error over all cases (the issue's accuracy targets for float32 and float64).
+ROUND_TRIP_TOL = {"float64": 2e-15, "float32": 5e-7, "float16": 4e-3, "bfloat16": 3e-2}
+# The norms a quaternion may have, per dtype (documented in the README): beyond these the squares of
+# its components leave the normal range of the compute dtype (float32 for the 16-bit types), and XLA
+# and GPUs flush subnormals to zero. float16 inputs are bounded by float16's own range.
+NORM_RANGE = {
+    "float64": (1e-20, 1e20),
+    "float32": (1e-15, 1e15),
+    "float16": (1e-4, 1e4),
+    "bfloat16": (1e-15, 1e15),
+}
+# Gradient checks run in float64 only.
+GRAD_DTYPE = "float64"
+
+
+# ---------------------------------------------------------------------------------------------------
+# Cases: batches of quaternions (w, x, y, z), float64, not necessarily unit.
+
+
+def axis_angle_quaternions(axes: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    axes = axes / np.linalg.norm(axes, axis=-1, keepdims=True)
+    half = 0.5 * angles[..., None]
+    return np.concatenate([np.cos(half), np.sin(half) * axes], axis=-1)
+
+
+def uniform_quaternions(n: int | tuple[int, ...], seed: int) -> np.ndarray:
+    # scipy's sampler, not ours: the cases must not depend on the code under test.
+    shape = (n,) if isinstance(n, int) else n
+    flat = Rotation.random(int(np.prod(shape)), random_state=seed).as_quat(scalar_first=True)
+    return flat.reshape((*shape, 4))
+
+
+def _half_turns() -> np.ndarray:
+    grid = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)], float)
+    axes = grid[np.abs(grid).sum(axis=1) > 0]  # the 26 axes of {-1, 0, 1}^3
+    return axis_angle_quaternions(axes, np.full(len(axes), np.pi))
+
+
+def _tilted_axes(tilts: np.ndarray) -> np.ndarray:
+    """Axes tilted by each angle in ``tilts`` away from x, y and z (towards a fixed oblique direction)."""
+    out = []
+    for k in range(3):
+        base = np.eye(3)[k]
+        away = np.array([0.3, 0.5, 0.8])
+        away -= away.dot(base) * base
+        away /= np.linalg.norm(away)
+        out += [np.cos(t) * base + np.sin(t) * away for t in tilts]
+    return np.array(out)
+
+
+def _near_half_turns() -> np.ndarray:
+    axes = _tilted_axes(10.0 ** -np.arange(3, 9))  # 18 axes tilted by 1e-3 ... 1e-8
+    angles = np.pi - 10.0 ** -np.arange(1, 9)  # pi - 1e-1 ... pi - 1e-8
+    return axis_angle_quaternions(np.repeat(axes, len(angles), axis=0), np.tile(angles, len(axes)))
+
+
+def _near_identity() -> np.ndarray:
+    axes = np.vstack([np.eye(3), [[1.0, 1.0, 1.0]], [[0.3, -0.5, 0.8]]])
+    angles = 10.0 ** -np.arange(4, 11)  # 1e-4 ... 1e-10
+    return axis_angle_quaternions(np.repeat(axes, len(angles), axis=0), np.tile(angles, len(axes)))
+
+
+def _norms(dtype: str) -> np.ndarray:
+    lo, hi = NORM_RANGE[dtype]
+    scales = np.logspace(np.log10(lo), np.log10(hi), 9)
+    return (uniform_quaternions(8, seed=3)[None, :, :] * scales[:, None, None]).reshape(-1, 4)
+
+
+@dataclass(frozen=True)
+class Case:
+    name: str
+    make: Callable[[str], np.ndarray]  # dtype name -> quaternions, shape (..., 4)
+    differentiable: bool = True  # False where the op is not differentiable (the zero quaternion)
+
+    def quaternions(self, dtype: str) -> np.ndarray:
+        return self.make(dtype)
+
+
+def _fixed(q: np.ndarray) -> Callable[[str], np.ndarray]:
+    return lambda dtype: q
+
+
+CASES = [
+    Case("random", _fixed(uniform_quaternions(64, seed=0))),
+    Case("identity", _fixed(np.array([[1.0, 0, 0, 0], [-1.0, 0, 0, 0]]))),
+    Case("half_turns", _fixed(_half_turns())),
+    Case("near_half_turns", _fixed(_near_half_turns())),
+    Case("near_identity", _fixed(_near_identity())),
+    Case("norms", _norms),
+    Case("sign_flip", _fixed(np.stack([uniform_quaternions(8, 1), -uniform_quaternions(8, 1)]))),
+    Case("zero", _fixed(np.zeros((1, 4))), differentiable=False),
+    Case("batch_scalar", _fixed(uniform_quaternions(1, seed=4)[0])),
+    Case("batch_1", _fixed(uniform_quaternions(1, seed=5))),
+    Case("batch_3x1x2", _fixed(uniform_quaternions((3, 1, 2), seed=6))),
+    Case("batch_empty", _fixed(np.zeros((0, 4)))),
+]
+CASES_BY_NAME = {c.name: c for c in CASES}
+# Cases for the expensive checks (gradcheck, jax.check_grads, compile): the named edge cases.
+EDGE_CASES = ("random", "identity", "half_turns", "near_half_turns", "near_identity", "batch_3x1x2")
+
+
+# ---------------------------------------------------------------------------------------------------
+# Oracles (float64 NumPy; scipy where scipy has the operation).
+
+
+def _flat(x: np.ndarray, trailing: int) -> tuple[np.ndarray, tuple[int, ...]]:
+    batch = x.shape[: x.ndim - trailing]
+    return x.reshape(-1, *x.shape[x.ndim - trailing :]), batch
+
+
+def oracle_quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
+    flat, batch = _flat(q, 1)
+    zero = np.all(flat == 0, axis=-1)  # documented: the zero quaternion gives the identity
+    safe = np.where(zero[:, None], [1.0, 0.0, 0.0, 0.0], flat)
+    out = Rotation.from_quat(safe, scalar_first=True).as_matrix() if len(flat) else np.zeros((0, 3, 3))
+    return out.reshape((*batch, 3, 3))
+
+
+def oracle_matrix_to_quaternion(matrix: np.ndarray) -> np.ndarray:
+    flat, batch = _flat(matrix, 2)
+    out = Rotation.from_matrix(flat).as_quat(canonical=True, scalar_first=True) if len(flat) else flat[:, 0]
+    return out.reshape((*batch, 4))
+
+
+def oracle_standardize(q: np.ndarray) -> np.ndarray:
+    flat, _ = _flat(q, 1)
+    out = flat.copy()
+    for row in out:  # the rule as written: the first non-zero of (w, x, y, z) must be positive
+        nonzero = row[row != 0]
+        if len(nonzero) and nonzero[0] < 0:
+            row *= -1
+    return out.reshape(q.shape)
+
+
+def oracle_normalize(q: np.ndarray) -> np.ndarray:
+    norm = np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(norm > 0, q / np.where(norm > 0, norm, 1.0), [1.0, 0.0, 0.0, 0.0])
+
+
+def outer(q: Any) -> Any:
+    """q q^T: a smooth function of q that is blind to its sign, for gradient checks of ops whose
+    output sign is canonicalised (and so jumps where w crosses 0, exactly at half-turns)."""
+    return q[..., :, None] * q[..., None, :]
+
+
+# ---------------------------------------------------------------------------------------------------
+# The table of operations.
+
+
+@dataclass(frozen=True)
+class Op:
+    """One public function of diffquat and everything the suite needs to test it.
+
+    name: its name in every backend module.
+    inputs: case quaternions (float64, (..., 4)) -> the op's float64 input arrays.
+    oracle: float64 inputs (as the backend received them) -> the expected float64 output.
+    quaternion_args: which positional inputs are quaternions (reordered for ``scalar_first=False``).
+    output: "matrix", "quaternion" or "other"; matrices are checked to be rotations.
+    scalar_first: whether the op takes the ``scalar_first`` keyword.
+    canonical: the output quaternion is in canonical sign (checked as a property), which makes the op
+        jump where w crosses 0: gradients are checked through ``outer``.
+    unit: the output quaternion has unit norm.
+    up_to_sign: compare with the oracle up to the sign of q: when the true w is 0 (half-turns),
+        rounding legitimately decides the canonical sign.
+    grad_inputs / grad_fn: what gradients are checked on; by default the op itself on its inputs.
+        ``grad_fn(module, *xs)`` must be differentiable at every case (see ``outer``).
+    """
+
+    name: str
+    inputs: Callable[[np.ndarray], tuple[np.ndarray, ...]]
+    oracle: Callable[..., np.ndarray]
+    quaternion_args: tuple[int, ...] = (0,)
+    output: str = "quaternion"
+    scalar_first: bool = True
+    canonical: bool = False
+    unit: bool = False
+    up_to_sign: bool = False
+    grad_inputs: Callable[[np.ndarray], tuple[np.ndarray, ...]] | None = None
+    grad_fn: Callable[..., Any] | None = None
+
+    def __call__(self, module: Any, *xs: Any, **kw: Any) -> Any:
+        return getattr(module, self.name)(*xs, **kw)
+
+    def gradient_inputs(self, q: np.ndarray) -> tuple[np.ndarray, ...]:
+        return (self.grad_inputs or self.inputs)(q)
+
+    def gradient_function(self, module: Any) -> Callable[..., Any]:
+        if self.grad_fn is not None:
+            return lambda *xs: self.grad_fn(module, *xs)  # type: ignore[misc]
+        if self.canonical:
+            return lambda *xs: outer(self(module, *xs))
+        return lambda *xs: self(module, *xs)
+
+
+def _q(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    return (q,)
+
+
+def _unit(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    return (oracle_normalize(q),)
+
+
+def _matrix(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    return (oracle_quaternion_to_matrix(q),)
+
+
+OPS = [
+    Op("quaternion_to_matrix", _q, oracle_quaternion_to_matrix, output="matrix"),
+    Op(
+        "matrix_to_quaternion",
+        _matrix,
+        oracle_matrix_to_quaternion,
+        quaternion_args=(),
+        canonical=True,
+        unit=True,
+        up_to_sign=True,
+        # Checked on SO(3): u -> m2q(q2m(u)). Off SO(3) at a pivot tie (half-turns about tilted axes)
+        # the two candidate branches differ to first order, so only on-manifold directions have one
+        # derivative there. Arbitrary directions off SO(3) are checked at random matrices (test_grads).
+        grad_inputs=_unit,
+        grad_fn=lambda m, u: outer(m.matrix_to_quaternion(m.quaternion_to_matrix(u))),
+    ),
+    Op("standardize_quaternion", _q, oracle_standardize, canonical=True),
+    Op("normalize_quaternion", _q, oracle_normalize, unit=True),
+    Op("wxyz_to_xyzw", _q, lambda q: q[..., [1, 2, 3, 0]], quaternion_args=(), scalar_first=False),
+    Op("xyzw_to_wxyz", _q, lambda q: q[..., [3, 0, 1, 2]], quaternion_args=(), scalar_first=False),
+]
+OPS_BY_NAME = {op.name: op for op in OPS}
+
+# Public names that are not rows of the table, with the test that covers each.
+NOT_IN_TABLE = {"random_quaternions": "tests/test_random.py"}
+
+
+# ---------------------------------------------------------------------------------------------------
+# Narrowing a table-driven test (read by conftest.pytest_generate_tests).
+
+
+def only(
+    op: Callable[[Op], bool] | None = None,
+    backend: Callable[[str], bool] | None = None,
+    dtype: Callable[[str], bool] | None = None,
+    case: Callable[[Case], bool] | None = None,
+) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    """Decorator: run a table-driven test only on the ops, backends, dtypes and cases that pass."""
+    filters = {k: v for k, v in {"op": op, "backend": backend, "dtype": dtype, "case": case}.items() if v}
+
+    def mark(fn: Callable[..., Any]) -> Callable[..., Any]:
+        fn.diffquat_filters = filters  # type: ignore[attr-defined]
+        return fn
+
+    return mark
+
+
+AUTODIFF_BACKENDS = ("torch", "jax")
+gradients = only(backend=lambda b: b in AUTODIFF_BACKENDS, dtype=lambda d: d == GRAD_DTYPE)

@@ -1,0 +1,103 @@
+"""One ``backend`` fixture, and the parametrisation that turns the table in ``cases.py`` into tests.
+
+A test asks for any of ``op``, ``backend``, ``dtype`` and ``case``; it gets every combination, with
+an id that names them in that order: ``test_values[quaternion_to_matrix-torch-float32-half_turns]``.
+``cases.only`` narrows a test to some ops, backends, dtypes or cases.
+"""
+
+from __future__ import annotations
+
+import importlib
+import itertools
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import numpy as np
+import pytest
+import torch
+from cases import CASES, DTYPES, OPS
+
+# Switched once, here: float64 for the gradient checks, and strict promotion so the core cannot lean
+# on an implicit cast or a rank broadcast that numpy or torch would not do the same way.
+jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_numpy_dtype_promotion", "strict")
+jax.config.update("jax_numpy_rank_promotion", "raise")
+torch.set_default_dtype(torch.float32)
+
+import jax.numpy as jnp  # noqa: E402
+import ml_dtypes  # noqa: E402
+
+
+@dataclass(frozen=True)
+class Backend:
+    """How the suite talks to one backend: its module, its dtypes, and conversions from/to NumPy."""
+
+    name: str
+    dtypes: dict[str, Any]
+    asarray: Callable[[np.ndarray, Any], Any]
+    to_numpy: Callable[[Any], np.ndarray]
+    differentiable: bool
+
+    @property
+    def module(self) -> Any:
+        return importlib.import_module(f"diffquat.{self.name}")
+
+    def array(self, x: np.ndarray, dtype: str) -> Any:
+        return self.asarray(np.asarray(x, dtype=np.float64), self.dtypes[dtype])
+
+
+BACKENDS = {
+    "numpy": Backend(
+        "numpy",
+        {"float64": np.float64, "float32": np.float32, "float16": np.float16, "bfloat16": ml_dtypes.bfloat16},
+        lambda x, dt: x.astype(dt),
+        lambda x: np.asarray(x).astype(np.float64),
+        differentiable=False,
+    ),
+    "torch": Backend(
+        "torch",
+        {
+            "float64": torch.float64,
+            "float32": torch.float32,
+            "float16": torch.float16,
+            "bfloat16": torch.bfloat16,
+        },
+        lambda x, dt: torch.from_numpy(x).to(dt),
+        lambda x: x.detach().to(torch.float64).numpy(),
+        differentiable=True,
+    ),
+    "jax": Backend(
+        "jax",
+        {"float64": jnp.float64, "float32": jnp.float32, "float16": jnp.float16, "bfloat16": jnp.bfloat16},
+        lambda x, dt: jnp.asarray(x, dtype=dt),
+        lambda x: np.asarray(x.astype(jnp.float64)),
+        differentiable=True,
+    ),
+}
+
+
+@pytest.fixture
+def backend(request: pytest.FixtureRequest) -> Backend:
+    return BACKENDS[request.param]
+
+
+def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
+    names = metafunc.fixturenames
+    if "backend" not in names:
+        return
+    keep = getattr(metafunc.function, "diffquat_filters", {})
+    axes: list[tuple[str, list[Any], Callable[[Any], str]]] = []
+    if "op" in names:
+        axes.append(("op", OPS, lambda op: op.name))
+    axes.append(("backend", list(BACKENDS), str))
+    if "dtype" in names:
+        axes.append(("dtype", list(DTYPES), str))
+    if "case" in names:
+        axes.append(("case", CASES, lambda case: case.name))
+    axes = [(a, [v for v in values if keep.get(a, lambda v: True)(v)], fmt) for a, values, fmt in axes]
+    argnames = [a for a, _, _ in axes]
+    combos = list(itertools.product(*(values for _, values, _ in axes)))
+    ids = ["-".join(fmt(v) for (_, _, fmt), v in zip(axes, combo, strict=True)) for combo in combos]
+    metafunc.parametrize(argnames, combos, ids=ids, indirect=["backend"])

@@ -1,0 +1,159 @@
+"""Values against the scipy oracle, and the properties every user relies on, for every op, backend,
+dtype and case in the table."""
+
+from __future__ import annotations
+
+import numpy as np
+from cases import (
+    CASES,
+    ROUND_TRIP_TOL,
+    VALUE_TOL,
+    Case,
+    Op,
+    only,
+    oracle_normalize,
+    oracle_quaternion_to_matrix,
+    uniform_quaternions,
+)
+from conftest import Backend
+
+WXYZ_TO_XYZW = [1, 2, 3, 0]
+XYZW_TO_WXYZ = [3, 0, 1, 2]
+
+
+def run(op: Op, backend: Backend, dtype: str, case: Case) -> tuple[list[np.ndarray], np.ndarray]:
+    """Run ``op`` on the case; return the float64 values the backend received and its output."""
+    inputs = [backend.array(x, dtype) for x in op.inputs(case.quaternions(dtype))]
+    received = [backend.to_numpy(x) for x in inputs]
+    out = op(backend.module, *inputs)
+    assert out.dtype == inputs[0].dtype, "dtype not preserved"
+    assert type(out) is type(inputs[0]), "array type not preserved"
+    for x, before in zip(inputs, received, strict=True):
+        np.testing.assert_array_equal(backend.to_numpy(x), before, err_msg="the op wrote into its input")
+    return received, backend.to_numpy(out)
+
+
+def max_error(actual: np.ndarray, expected: np.ndarray, up_to_sign: bool = False) -> float:
+    if actual.size == 0:
+        return 0.0
+    err = np.abs(actual - expected).max(axis=-1)
+    if up_to_sign:
+        err = np.minimum(err, np.abs(actual + expected).max(axis=-1))
+    return float(err.max())
+
+
+def test_values(op: Op, backend: Backend, dtype: str, case: Case) -> None:
+    received, out = run(op, backend, dtype, case)
+    expected = op.oracle(*received)
+    assert out.shape == expected.shape
+    assert np.all(np.isfinite(out))
+    assert max_error(out, expected, op.up_to_sign) <= VALUE_TOL[dtype]
+
+
+@only(op=lambda op: op.output == "matrix")
+def test_output_is_a_rotation(op: Op, backend: Backend, dtype: str, case: Case) -> None:
+    _, matrix = run(op, backend, dtype, case)
+    gram = np.swapaxes(matrix, -1, -2) @ matrix
+    assert max_error(gram, np.broadcast_to(np.eye(3), gram.shape)) <= 2 * VALUE_TOL[dtype]
+    det = np.linalg.det(matrix) if matrix.size else np.ones(0)
+    assert np.all(np.abs(det - 1) <= 3 * VALUE_TOL[dtype])
+
+
+@only(op=lambda op: op.canonical or op.unit)
+def test_output_quaternion_is_canonical_and_unit(op: Op, backend: Backend, dtype: str, case: Case) -> None:
+    _, q = run(op, backend, dtype, case)
+    if op.unit:
+        norm = np.linalg.norm(q, axis=-1)
+        assert np.all(np.abs(norm - 1) <= 2 * VALUE_TOL[dtype])
+    if op.canonical:
+        w, x, y, z = np.moveaxis(q, -1, 0)
+        negative = (w < 0) | ((w == 0) & ((x < 0) | ((x == 0) & ((y < 0) | ((y == 0) & (z < 0))))))
+        assert not np.any(negative)
+
+
+@only(op=lambda op: op.scalar_first)
+def test_scalar_last_is_the_reordered_scalar_first(op: Op, backend: Backend, dtype: str, case: Case) -> None:
+    inputs = op.inputs(case.quaternions(dtype))
+    last = [x[..., WXYZ_TO_XYZW] if i in op.quaternion_args else x for i, x in enumerate(inputs)]
+    first = backend.to_numpy(op(backend.module, *(backend.array(x, dtype) for x in inputs)))
+    out = backend.to_numpy(op(backend.module, *(backend.array(x, dtype) for x in last), scalar_first=False))
+    if op.output == "quaternion":
+        out = out[..., XYZW_TO_WXYZ]
+    np.testing.assert_array_equal(out, first)
+
+
+def test_round_trip_matrix_quaternion_matrix(backend: Backend, dtype: str, case: Case) -> None:
+    """R -> q -> R reproduces R (the accuracy target of the core issue, exact half-turns included)."""
+    dq = backend.module
+    matrix = backend.array(oracle_quaternion_to_matrix(case.quaternions(dtype)), dtype)
+    back = dq.quaternion_to_matrix(dq.matrix_to_quaternion(matrix))
+    assert max_error(backend.to_numpy(back), backend.to_numpy(matrix)) <= ROUND_TRIP_TOL[dtype]
+
+
+def test_round_trip_quaternion_matrix_quaternion(backend: Backend, dtype: str, case: Case) -> None:
+    """q -> R -> q gives back q/|q| up to the canonical sign (the zero quaternion gives the identity)."""
+    dq = backend.module
+    q = backend.array(case.quaternions(dtype), dtype)
+    back = backend.to_numpy(dq.matrix_to_quaternion(dq.quaternion_to_matrix(q)))
+    expected = oracle_normalize(backend.to_numpy(q))
+    assert max_error(back, expected, up_to_sign=True) <= 2 * VALUE_TOL[dtype]
+
+
+def hamilton(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    pw, px, py, pz = np.moveaxis(p, -1, 0)
+    qw, qx, qy, qz = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            pw * qw - px * qx - py * qy - pz * qz,
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw,
+        ],
+        axis=-1,
+    )
+
+
+def test_matrix_equals_the_quaternion_sandwich(backend: Backend, dtype: str, case: Case) -> None:
+    """R(q) v == q v q* for unit q: the matrix is the active rotation that q stands for."""
+    q = oracle_normalize(case.quaternions(dtype))
+    q_in = backend.to_numpy(backend.array(q, dtype))
+    v = np.random.default_rng(0).normal(size=(*q.shape[:-1], 3))
+    matrix = backend.to_numpy(backend.module.quaternion_to_matrix(backend.array(q_in, dtype)))
+    rotated = (matrix @ v[..., None])[..., 0]
+    pure = np.concatenate([np.zeros((*v.shape[:-1], 1)), v], axis=-1)
+    conj = q_in * np.array([1.0, -1.0, -1.0, -1.0])
+    sandwich = hamilton(hamilton(q_in, pure), conj)[..., 1:] / np.sum(q_in**2, axis=-1, keepdims=True)
+    assert max_error(rotated, sandwich) <= 4 * VALUE_TOL[dtype] * max(1.0, float(np.abs(v).max(initial=0)))
+
+
+def test_matches_the_kuipers_formula(backend: Backend, dtype: str, case: Case) -> None:
+    """Kuipers, Quaternions and Rotation Sequences, section 5.14, on unit quaternions."""
+    q = backend.to_numpy(backend.array(oracle_normalize(case.quaternions(dtype)), dtype))
+    q = oracle_normalize(q)  # unit in float64, as the formula assumes
+    q0, q1, q2, q3 = np.moveaxis(q, -1, 0)
+    kuipers = np.stack(
+        [
+            np.stack([2 * (q0**2 + q1**2) - 1, 2 * (q1 * q2 - q0 * q3), 2 * (q1 * q3 + q0 * q2)], -1),
+            np.stack([2 * (q1 * q2 + q0 * q3), 2 * (q0**2 + q2**2) - 1, 2 * (q2 * q3 - q0 * q1)], -1),
+            np.stack([2 * (q1 * q3 - q0 * q2), 2 * (q2 * q3 + q0 * q1), 2 * (q0**2 + q3**2) - 1], -1),
+        ],
+        -2,
+    )
+    out = backend.to_numpy(backend.module.quaternion_to_matrix(backend.array(q, dtype)))
+    assert max_error(out, kuipers) <= VALUE_TOL[dtype]
+
+
+def test_quaternion_and_its_negative_and_multiples_give_one_matrix(backend: Backend, dtype: str) -> None:
+    q = uniform_quaternions(16, seed=7)
+    scales = np.array([1.0, -1.0, 3.0, -0.25])[:, None, None]
+    out = backend.to_numpy(backend.module.quaternion_to_matrix(backend.array(q[None] * scales, dtype)))
+    assert max_error(out, np.broadcast_to(out[0], out.shape)) <= VALUE_TOL[dtype]
+
+
+def test_cases_cover_the_named_edge_cases() -> None:
+    """The suite's promise depends on these cases existing: guard the table against shrinking."""
+    names = {c.name for c in CASES}
+    assert {"random", "identity", "half_turns", "near_half_turns", "near_identity", "norms", "zero"} <= names
+    shapes = {c.quaternions("float64").shape[:-1] for c in CASES}
+    assert {(), (1,), (3, 1, 2), (0,)} <= shapes
+    assert CASES[[c.name for c in CASES].index("half_turns")].quaternions("float64").shape == (26, 4)
