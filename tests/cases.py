@@ -265,15 +265,22 @@ def only(
     dtype: Callable[[str], bool] | None = None,
     case: Callable[[Case], bool] | None = None,
 ) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
-    """Decorator: run a table-driven test only on the ops, backends, dtypes and cases that pass."""
-    filters = {k: v for k, v in {"op": op, "backend": backend, "dtype": dtype, "case": case}.items() if v}
+    """Decorator: run a table-driven test only on the ops, backends, dtypes and cases that pass.
+    Stacked decorators combine: every filter must pass."""
+    new = {k: v for k, v in {"op": op, "backend": backend, "dtype": dtype, "case": case}.items() if v}
 
     def mark(fn: Callable[..., Any]) -> Callable[..., Any]:
+        filters = dict(getattr(fn, "diffquat_filters", {}))
+        for axis, keep in new.items():
+            before = filters.get(axis)
+            filters[axis] = keep if before is None else (lambda v, a=before, b=keep: a(v) and b(v))
         fn.diffquat_filters = filters  # type: ignore[attr-defined]
         return fn
 
     return mark
 
 
-AUTODIFF_BACKENDS = ("torch", "jax")
-gradients = only(backend=lambda b: b in AUTODIFF_BACKENDS, dtype=lambda d: d == GRAD_DTYPE)
+gradients = only(backend=lambda b: b in ("torch", "jax"), dtype=lambda d: d == GRAD_DTYPE)
+torch_only = only(backend=lambda b: b == "torch")
+jax_only = only(backend=lambda b: b == "jax")
+edge_cases = only(case=lambda c: c.name in EDGE_CASES)

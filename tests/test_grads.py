@@ -1,0 +1,164 @@
+"""Gradients: correct (against finite differences), not merely finite, at every named case; torch's
+gradcheck/gradgradcheck and jax's check_grads; and torch == jax. All in float64."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import torch
+from cases import Case, Op, edge_cases, gradients, jax_only, oracle_quaternion_to_matrix, outer, torch_only
+from conftest import BACKENDS, Backend
+from jax.test_util import check_grads
+
+Fn = Callable[..., Any]
+
+
+def batch_shape(case: Case) -> tuple[int, ...]:
+    return case.quaternions("float64").shape[:-1]
+
+
+Batch = tuple[int, ...]
+
+
+def reverse_jacobians(backend: Backend, fn: Fn, xs: list[np.ndarray], batch: Batch) -> list[np.ndarray]:
+    """Per batch element, the Jacobian of ``fn``'s output w.r.t. each input, by reverse mode: one
+    backward pass per output component, cotangent one-hot in that component for every element.
+    Returns, per input, shape ``(*batch, n_out, n_in)``."""
+    nb = len(batch)
+    if backend.name == "torch":
+        ts = [torch.tensor(x, requires_grad=True) for x in xs]
+        out = fn(*ts)
+        flat = out.reshape(*batch, int(np.prod(out.shape[nb:])))
+        rows = [torch.autograd.grad(flat[..., o].sum(), ts, retain_graph=True) for o in range(flat.shape[-1])]
+        per_input = [[r[i].detach().numpy() for r in rows] for i in range(len(xs))]
+    else:
+        out, pullback = jax.vjp(fn, *[jnp.asarray(x) for x in xs])
+        n_out = int(np.prod(out.shape[nb:]))
+        rows = []
+        for o in range(n_out):
+            cot = np.zeros((*batch, n_out))
+            cot[..., o] = 1.0
+            rows.append(pullback(jnp.asarray(cot.reshape(out.shape))))
+        per_input = [[np.asarray(r[i]) for r in rows] for i in range(len(xs))]
+    n_in = [int(np.prod(x.shape[nb:])) for x in xs]
+    return [
+        np.stack([g.reshape(*batch, n) for g in rows_i], axis=-2)
+        for rows_i, n in zip(per_input, n_in, strict=True)
+    ]
+
+
+def evaluate_with(backend: Backend, fn: Fn, xs: list[np.ndarray], i: int, value: np.ndarray) -> np.ndarray:
+    """``fn`` in float64 on ``xs`` with input ``i`` replaced by ``value``."""
+    moved = [*xs]
+    moved[i] = value
+    return backend.to_numpy(fn(*(backend.array(m, "float64") for m in moved)))
+
+
+def fd_jacobians(backend: Backend, fn: Fn, xs: list[np.ndarray], batch: Batch) -> list[np.ndarray]:
+    """The same Jacobians by central finite differences, the step scaled to each element's input."""
+    nb = len(batch)
+    out = []
+    for i, x in enumerate(xs):
+        flat = x.reshape(*batch, int(np.prod(x.shape[nb:])))
+        h = 1e-6 * np.maximum(np.linalg.norm(flat, axis=-1), 1e-300)
+        cols = []
+        for j in range(flat.shape[-1]):
+            step = np.zeros_like(flat)
+            step[..., j] = h
+            plus = evaluate_with(backend, fn, xs, i, (flat + step).reshape(x.shape))
+            minus = evaluate_with(backend, fn, xs, i, (flat - step).reshape(x.shape))
+            n_out = int(np.prod(plus.shape[nb:]))
+            cols.append((plus - minus).reshape(*batch, n_out) / (2 * h[..., None]))
+        out.append(np.stack(cols, axis=-1))
+    return out
+
+
+def grad_setup(op: Op, backend: Backend, case: Case) -> tuple[Fn, list[np.ndarray], tuple[int, ...]]:
+    xs = list(op.gradient_inputs(case.quaternions("float64")))
+    fn = op.gradient_function(backend.module)
+    # jax: compiled, as users run it, and so that hundreds of finite-difference calls stay quick.
+    return (jax.jit(fn) if backend.name == "jax" else fn), xs, batch_shape(case)
+
+
+@gradients
+def test_gradient_matches_finite_differences(op: Op, backend: Backend, dtype: str, case: Case) -> None:
+    fn, xs, batch = grad_setup(op, backend, case)
+    ad = reverse_jacobians(backend, fn, xs, batch)
+    assert all(np.all(np.isfinite(j)) for j in ad)
+    if not case.differentiable:
+        return  # the zero quaternion: no derivative exists, finiteness is the promise
+    for x, j_ad, j_fd in zip(xs, ad, fd_jacobians(backend, fn, xs, batch), strict=True):
+        scale = np.linalg.norm(x.reshape(*batch, j_ad.shape[-1]), axis=-1)[..., None, None]
+        tol = 1e-6 * np.maximum(np.abs(j_fd).max(axis=(-1, -2), keepdims=True), 1 / scale)
+        assert np.all(np.abs(j_ad - j_fd) <= tol), float(np.max(np.abs(j_ad - j_fd) / tol))
+
+
+def small(x: np.ndarray) -> np.ndarray:
+    """At most 24 elements of a case, to keep the dense numerical Jacobians of gradcheck small."""
+    return x if x.ndim <= 2 and x.shape[0] <= 24 else x.reshape(-1, *x.shape[-1:])[::4][:24]
+
+
+@edge_cases
+@torch_only
+@gradients
+def test_torch_gradcheck_and_gradgradcheck(op: Op, backend: Backend, dtype: str, case: Case) -> None:
+    fn, xs, _ = grad_setup(op, backend, case)
+    ts = tuple(torch.tensor(small(x), requires_grad=True) for x in xs)
+    assert torch.autograd.gradcheck(fn, ts, eps=1e-6, atol=1e-6, rtol=1e-5)
+    assert torch.autograd.gradgradcheck(fn, ts, eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+@edge_cases
+@jax_only
+@gradients
+def test_jax_check_grads(op: Op, backend: Backend, dtype: str, case: Case) -> None:
+    fn, xs, _ = grad_setup(op, backend, case)
+    check_grads(fn, tuple(jnp.asarray(small(x)) for x in xs), order=2, modes=("fwd", "rev"), eps=1e-6)
+
+
+@edge_cases
+@jax_only
+@gradients
+def test_torch_and_jax_gradients_agree(op: Op, backend: Backend, dtype: str, case: Case) -> None:
+    """The same cotangent pulled back through jax and through torch gives the same gradient to 1e-10."""
+    fn_jax, xs, _ = grad_setup(op, backend, case)
+    fn_torch = op.gradient_function(BACKENDS["torch"].module)
+    out_shape = np.shape(fn_jax(*[jnp.asarray(x) for x in xs]))
+    cot = np.random.default_rng(0).normal(size=out_shape)
+    _, pullback = jax.vjp(fn_jax, *[jnp.asarray(x) for x in xs])
+    g_jax = [np.asarray(g) for g in pullback(jnp.asarray(cot))]
+    ts = [torch.tensor(x, requires_grad=True) for x in xs]
+    g_torch = [g.numpy() for g in torch.autograd.grad(fn_torch(*ts), ts, torch.tensor(cot))]
+    for a, b in zip(g_torch, g_jax, strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * max(1.0, float(np.abs(b).max(initial=0))))
+
+
+def perturbed_rotations(n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=(n, 4))
+    return oracle_quaternion_to_matrix(q) + 1e-2 * rng.normal(size=(n, 3, 3))
+
+
+@pytest.mark.parametrize("name", ["torch", "jax"])
+def test_matrix_to_quaternion_gradient_off_rotation_matrices(name: str) -> None:
+    """Full 9-dimensional directions, not only along SO(3): matrices perturbed by 1e-2, as a network
+    would produce them. Checked through outer(q) since the sign of q is canonicalised."""
+    backend = BACKENDS[name]
+    matrices = perturbed_rotations(16, seed=9)
+
+    def fn(m: Any) -> Any:
+        return outer(backend.module.matrix_to_quaternion(m))
+
+    ad = reverse_jacobians(backend, fn, [matrices], (16,))[0]
+    fd = fd_jacobians(backend, fn, [matrices], (16,))[0]
+    np.testing.assert_allclose(ad, fd, atol=1e-7)
+    if name == "torch":
+        assert torch.autograd.gradcheck(fn, (torch.tensor(matrices, requires_grad=True),))
+        assert torch.autograd.gradgradcheck(fn, (torch.tensor(matrices, requires_grad=True),))
+    else:
+        check_grads(fn, (jnp.asarray(matrices),), order=2, modes=("fwd", "rev"), eps=1e-6)

@@ -1,0 +1,103 @@
+"""Every op under the function transforms users apply to it, agreeing with eager execution:
+``torch.compile(fullgraph=True)`` forward and backward, ``torch.func.vmap/grad/jacrev``, and
+``jax.jit/vmap/grad/jacfwd``. float64, so agreement is checked tightly."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import torch
+from cases import Case, Op, gradients, jax_only, only, torch_only
+from conftest import Backend
+
+# Two cases: a generic batch and the exact half-turns (the branchiest inputs for every op).
+transform_cases = only(case=lambda c: c.name in ("random", "half_turns"))
+
+
+def setup(op: Op, case: Case) -> tuple[list[np.ndarray], np.ndarray]:
+    xs = list(op.gradient_inputs(case.quaternions("float64")))
+    return xs, np.random.default_rng(1).normal(size=(len(xs[0]),))
+
+
+def scalar_loss(fn: Callable[..., Any], weights: Any) -> Callable[..., Any]:
+    """A scalar of every output entry, weighted per batch element, for grad-style transforms."""
+
+    def loss(*xs: Any) -> Any:
+        out = fn(*xs)
+        flat = out.reshape(out.shape[0], -1)
+        return ((flat * flat.sum(-1, keepdims=True)).sum(-1) * weights).sum()
+
+    return loss
+
+
+def close(a: Any, b: Any) -> None:
+    np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-12)
+
+
+@transform_cases
+@torch_only
+@gradients
+def test_torch_compile_fullgraph_forward_and_backward(
+    op: Op, backend: Backend, dtype: str, case: Case
+) -> None:
+    fn = op.gradient_function(backend.module)
+    xs, _ = setup(op, case)
+    compiled = torch.compile(fn, fullgraph=True, dynamic=False)
+    eager_in = [torch.tensor(x, requires_grad=True) for x in xs]
+    comp_in = [torch.tensor(x, requires_grad=True) for x in xs]
+    eager, comp = fn(*eager_in), compiled(*comp_in)
+    close(comp.detach(), eager.detach())
+    cot = torch.tensor(np.random.default_rng(2).normal(size=tuple(eager.shape)))
+    for a, b in zip(
+        torch.autograd.grad(comp, comp_in, cot), torch.autograd.grad(eager, eager_in, cot), strict=True
+    ):
+        close(a, b)
+
+
+@transform_cases
+@torch_only
+@gradients
+def test_torch_func_vmap_grad_jacrev(op: Op, backend: Backend, dtype: str, case: Case) -> None:
+    fn = op.gradient_function(backend.module)
+    xs, w = setup(op, case)
+    ts = [torch.tensor(x) for x in xs]
+    close(torch.func.vmap(fn)(*ts), fn(*ts))
+    # grad of a weighted scalar equals autograd's
+    loss = scalar_loss(fn, torch.tensor(w))
+    leaves = [t.clone().requires_grad_(True) for t in ts]
+    expected = torch.autograd.grad(loss(*leaves), leaves)
+    got = torch.func.grad(loss, argnums=tuple(range(len(ts))))(*ts)
+    for a, b in zip(got, expected, strict=True):
+        close(a, b)
+    # per-element Jacobians: jacrev under vmap equals jacrev of one element
+    jac = torch.func.vmap(torch.func.jacrev(fn))(*ts)
+    one = torch.func.jacrev(fn)(*(t[0] for t in ts))
+    close(jac[0], one)
+    assert torch.all(torch.isfinite(jac))
+
+
+@transform_cases
+@jax_only
+@gradients
+def test_jax_jit_vmap_grad_jacfwd(op: Op, backend: Backend, dtype: str, case: Case) -> None:
+    fn = op.gradient_function(backend.module)
+    xs, w = setup(op, case)
+    arrays = [jnp.asarray(x) for x in xs]
+    eager = fn(*arrays)
+    close(jax.jit(fn)(*arrays), eager)
+    close(jax.vmap(fn)(*arrays), eager)
+    loss = scalar_loss(fn, jnp.asarray(w))
+    argnums = tuple(range(len(arrays)))
+    g = jax.grad(loss, argnums=argnums)(*arrays)
+    g_jit = jax.jit(jax.grad(loss, argnums=argnums))(*arrays)
+    for a, b in zip(g_jit, g, strict=True):
+        close(a, b)
+    # forward-mode per-element Jacobians equal reverse-mode ones
+    fwd = jax.vmap(jax.jacfwd(fn))(*arrays)
+    rev = jax.vmap(jax.jacrev(fn))(*arrays)
+    close(fwd, rev)
+    assert bool(jnp.all(jnp.isfinite(fwd)))
