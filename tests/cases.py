@@ -8,8 +8,8 @@ implementation, wherever scipy has the operation.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -188,6 +188,12 @@ class Op:
         rounding legitimately decides the canonical sign.
     grad_inputs / grad_fn: what gradients are checked on; by default the op itself on its inputs.
         ``grad_fn(module, *xs)`` must be differentiable at every case (see ``outer``).
+    kwargs: keyword arguments the op is called with (e.g. an Euler convention).
+    label: the name in test ids when one function has several rows (default: ``name``).
+    tol_scale: this op's tolerances are ``tol_scale`` times the table's (say why where it is not 1).
+    applies: the cases this op is run on at all (default: all).
+    smooth_at: the cases where the op is differentiable, so that gradients must match finite
+        differences; elsewhere they must only be finite (default: ``case.differentiable``).
     """
 
     name: str
@@ -201,9 +207,18 @@ class Op:
     up_to_sign: bool = False
     grad_inputs: Callable[[np.ndarray], tuple[np.ndarray, ...]] | None = None
     grad_fn: Callable[..., Any] | None = None
+    kwargs: Mapping[str, Any] = field(default_factory=dict)
+    label: str = ""
+    tol_scale: float = 1.0
+    applies: Callable[[Case], bool] = lambda case: True
+    smooth_at: Callable[[Case], bool] = lambda case: case.differentiable
+
+    @property
+    def id(self) -> str:
+        return self.label or self.name
 
     def __call__(self, module: Any, *xs: Any, **kw: Any) -> Any:
-        return getattr(module, self.name)(*xs, **kw)
+        return getattr(module, self.name)(*xs, **self.kwargs, **kw)
 
     def gradient_inputs(self, q: np.ndarray) -> tuple[np.ndarray, ...]:
         return (self.grad_inputs or self.inputs)(q)

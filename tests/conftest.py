@@ -90,7 +90,7 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
     keep = getattr(metafunc.function, "diffquat_filters", {})
     axes: list[tuple[str, list[Any], Callable[[Any], str]]] = []
     if "op" in names:
-        axes.append(("op", OPS, lambda op: op.name))
+        axes.append(("op", OPS, lambda op: op.id))
     axes.append(("backend", list(BACKENDS), str))
     if "dtype" in names:
         axes.append(("dtype", list(DTYPES), str))
@@ -99,5 +99,8 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
     axes = [(a, [v for v in values if keep.get(a, lambda v: True)(v)], fmt) for a, values, fmt in axes]
     argnames = [a for a, _, _ in axes]
     combos = list(itertools.product(*(values for _, values, _ in axes)))
+    if "op" in argnames and "case" in argnames:
+        i, j = argnames.index("op"), argnames.index("case")
+        combos = [c for c in combos if c[i].applies(c[j])]
     ids = ["-".join(fmt(v) for (_, _, fmt), v in zip(axes, combo, strict=True)) for combo in combos]
     metafunc.parametrize(argnames, combos, ids=ids, indirect=["backend"])

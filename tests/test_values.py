@@ -33,6 +33,10 @@ def run(op: Op, backend: Backend, dtype: str, case: Case) -> tuple[list[np.ndarr
     return received, backend.to_numpy(out)
 
 
+def tol(op: Op, dtype: str) -> float:
+    return VALUE_TOL[dtype] * op.tol_scale
+
+
 def max_error(actual: np.ndarray, expected: np.ndarray, up_to_sign: bool = False) -> float:
     if actual.size == 0:
         return 0.0
@@ -47,16 +51,16 @@ def test_values(op: Op, backend: Backend, dtype: str, case: Case) -> None:
     expected = op.oracle(*received)
     assert out.shape == expected.shape
     assert np.all(np.isfinite(out))
-    assert max_error(out, expected, op.up_to_sign) <= VALUE_TOL[dtype]
+    assert max_error(out, expected, op.up_to_sign) <= tol(op, dtype)
 
 
 @only(op=lambda op: op.output == "matrix")
 def test_output_is_a_rotation(op: Op, backend: Backend, dtype: str, case: Case) -> None:
     _, matrix = run(op, backend, dtype, case)
     gram = np.swapaxes(matrix, -1, -2) @ matrix
-    assert max_error(gram, np.broadcast_to(np.eye(3), gram.shape)) <= 2 * VALUE_TOL[dtype]
+    assert max_error(gram, np.broadcast_to(np.eye(3), gram.shape)) <= 2 * tol(op, dtype)
     det = np.linalg.det(matrix) if matrix.size else np.ones(0)
-    assert np.all(np.abs(det - 1) <= 3 * VALUE_TOL[dtype])
+    assert np.all(np.abs(det - 1) <= 3 * tol(op, dtype))
 
 
 @only(op=lambda op: op.canonical or op.unit)
@@ -64,7 +68,7 @@ def test_output_quaternion_is_canonical_and_unit(op: Op, backend: Backend, dtype
     _, q = run(op, backend, dtype, case)
     if op.unit:
         norm = np.linalg.norm(q, axis=-1)
-        assert np.all(np.abs(norm - 1) <= 2 * VALUE_TOL[dtype])
+        assert np.all(np.abs(norm - 1) <= 2 * tol(op, dtype))
     if op.canonical:
         w, x, y, z = np.moveaxis(q, -1, 0)
         negative = (w < 0) | ((w == 0) & ((x < 0) | ((x == 0) & ((y < 0) | ((y == 0) & (z < 0))))))

@@ -11,8 +11,8 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
-from . import _core
-from ._backend import Backend, documented, shape_tuple
+from .. import _core
+from .._backend import Backend, documented, shape_tuple
 
 __all__ = [
     "matrix_to_quaternion",

@@ -8,8 +8,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from . import _core
-from ._backend import Backend, documented, shape_tuple
+from .. import _core
+from .._backend import Backend, documented, shape_tuple
 
 __all__ = [
     "matrix_to_quaternion",
