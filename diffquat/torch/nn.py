@@ -1,0 +1,77 @@
+"""Rotation heads for PyTorch networks: raw network outputs -> rotation matrices.
+
+``RotationHead`` is a linear layer followed by the map of one representation onto SO(3); put it on top
+of any feature extractor and train with a geodesic loss::
+
+    import diffquat.torch as dq
+    from diffquat.torch.nn import RotationHead
+
+    head = RotationHead(128, representation="6d")
+    R = head(features)  # (..., 3, 3)
+    loss = dq.matrix_geodesic_distance(R, R_true).mean()
+
+Representations (the number of raw outputs in brackets): ``"quaternion"`` (4), ``"axis_angle"`` (3),
+``"euler"`` (3, intrinsic ``"XYZ"``, radians), ``"6d"`` (6, Zhou et al. 2019, first two *columns*),
+``"9d"`` (9, SVD projection, Levinson et al. 2020) and ``"10d"`` (10, Peretroukhin et al. 2020).
+The same maps exist as pure functions for JAX in :mod:`diffquat.jax.nn`.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+import diffquat.torch as _dq
+
+from .. import _heads
+
+__all__ = ["REPRESENTATIONS", "RotationHead", "representation_size", "representation_to_matrix"]
+
+REPRESENTATIONS: tuple[str, ...] = tuple(_heads.REPRESENTATIONS)
+
+
+def representation_size(representation: str) -> int:
+    """Number of raw outputs a head of ``representation`` needs (e.g. 6 for ``"6d"``)."""
+    return _heads.representation_size(representation)
+
+
+def representation_to_matrix(raw: Tensor, representation: str) -> Tensor:
+    """Rotation matrices ``(..., 3, 3)`` from raw outputs ``(..., n)``, ``n = representation_size(...)``.
+
+    Differentiable everywhere the representation is; any raw output gives a rotation (for example a
+    zero quaternion gives the identity).
+    """
+    return _heads.representation_to_matrix(torch, _dq, raw, representation)
+
+
+class RotationHead(nn.Module):
+    """A linear layer ``in_features -> representation_size(representation)`` then the map to SO(3).
+
+    Args:
+        in_features: size of the last dimension of the input features.
+        representation: one of ``REPRESENTATIONS``.
+        bias, device, dtype: as for ``torch.nn.Linear``.
+
+    Shapes: ``(..., in_features)`` in, rotation matrices ``(..., 3, 3)`` out (column-vector convention).
+    """
+
+    def __init__(
+        self,
+        in_features: int,
+        representation: str = "6d",
+        *,
+        bias: bool = True,
+        device: torch.device | str | None = None,
+        dtype: torch.dtype | None = None,
+    ) -> None:
+        super().__init__()
+        self.representation = representation
+        self.linear = nn.Linear(
+            in_features, representation_size(representation), bias=bias, device=device, dtype=dtype
+        )
+
+    def forward(self, features: Tensor) -> Tensor:
+        return representation_to_matrix(self.linear(features), self.representation)
+
+    def extra_repr(self) -> str:
+        return f"representation={self.representation!r}"

@@ -1,0 +1,165 @@
+"""Rotation heads (``diffquat.torch.nn`` and ``diffquat.jax.nn``): every representation maps any raw
+output to a rotation, agrees with an independent NumPy/scipy oracle, has finite-difference-correct
+gradients, traces, and the torch layer and the jax pure functions have the same parameters and shapes."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import torch
+from cases import only
+from conftest import Backend
+from scipy.spatial.transform import Rotation
+
+import diffquat.jax.nn as jnn
+import diffquat.torch.nn as tnn
+
+heads = only(backend=lambda b: b in ("torch", "jax"))
+REPRESENTATIONS = ("quaternion", "axis_angle", "euler", "6d", "9d", "10d")
+SIZES = {"quaternion": 4, "axis_angle": 3, "euler": 3, "6d": 6, "9d": 9, "10d": 10}
+
+
+def gram_schmidt(raw: np.ndarray) -> np.ndarray:
+    a1, a2 = raw[..., :3], raw[..., 3:]
+    b1 = a1 / np.linalg.norm(a1, axis=-1, keepdims=True)
+    a2 = a2 - np.sum(b1 * a2, axis=-1, keepdims=True) * b1
+    b2 = a2 / np.linalg.norm(a2, axis=-1, keepdims=True)
+    return np.stack([b1, b2, np.cross(b1, b2)], axis=-1)  # the two vectors are the first two *columns*
+
+
+def svd_projection(raw: np.ndarray) -> np.ndarray:
+    u, _, vt = np.linalg.svd(raw.reshape(*raw.shape[:-1], 3, 3))
+    d = np.ones((*raw.shape[:-1], 3))
+    d[..., 2] = np.sign(np.linalg.det(u @ vt))
+    return (u * d[..., None, :]) @ vt
+
+
+def smallest_eigenvector_rotation(raw: np.ndarray) -> np.ndarray:
+    rows, cols = np.triu_indices(4)
+    a = np.zeros((*raw.shape[:-1], 4, 4))
+    a[..., rows, cols] = raw
+    a[..., cols, rows] = raw
+    q = np.linalg.eigh(a)[1][..., :, 0]
+    return Rotation.from_quat(q.reshape(-1, 4), scalar_first=True).as_matrix().reshape(*raw.shape[:-1], 3, 3)
+
+
+def flat_scipy(make: Callable[[np.ndarray], Rotation], trailing: int) -> Callable[[np.ndarray], np.ndarray]:
+    return lambda raw: make(raw.reshape(-1, trailing)).as_matrix().reshape(*raw.shape[:-1], 3, 3)
+
+
+ORACLES: dict[str, Callable[[np.ndarray], np.ndarray]] = {
+    "quaternion": flat_scipy(lambda r: Rotation.from_quat(r, scalar_first=True), 4),
+    "axis_angle": flat_scipy(Rotation.from_rotvec, 3),
+    "euler": flat_scipy(lambda r: Rotation.from_euler("XYZ", r), 3),
+    "6d": gram_schmidt,
+    "9d": svd_projection,
+    "10d": smallest_eigenvector_rotation,
+}
+
+
+def raw_outputs(representation: str, batch: tuple[int, ...] = (4, 3), seed: int = 0) -> np.ndarray:
+    """What an untrained network emits: Gaussian raw outputs (float64)."""
+    return np.random.default_rng(seed).normal(size=(*batch, SIZES[representation]))
+
+
+def to_matrix(backend: Backend, raw: np.ndarray, representation: str) -> np.ndarray:
+    nn = tnn if backend.name == "torch" else jnn
+    return backend.to_numpy(nn.representation_to_matrix(backend.array(raw, "float64"), representation))
+
+
+def test_every_representation_is_tested_and_exported_by_both_backends() -> None:
+    assert tnn.REPRESENTATIONS == jnn.REPRESENTATIONS == REPRESENTATIONS
+    for r in REPRESENTATIONS:
+        assert tnn.representation_size(r) == jnn.representation_size(r) == SIZES[r]
+
+
+@heads
+@pytest.mark.parametrize("representation", REPRESENTATIONS)
+def test_head_gives_the_oracle_rotation(backend: Backend, representation: str) -> None:
+    raw = raw_outputs(representation)
+    out = to_matrix(backend, raw, representation)
+    assert out.shape == (4, 3, 3, 3)
+    np.testing.assert_allclose(out, ORACLES[representation](raw), atol=1e-10)
+    np.testing.assert_allclose(out.swapaxes(-1, -2) @ out, np.broadcast_to(np.eye(3), out.shape), atol=1e-12)
+    np.testing.assert_allclose(np.linalg.det(out), 1.0, atol=1e-12)
+
+
+@heads
+@pytest.mark.parametrize("representation", REPRESENTATIONS)
+def test_head_gradient_matches_finite_differences(backend: Backend, representation: str) -> None:
+    raw = raw_outputs(representation, batch=(3,), seed=1)
+    weights = np.random.default_rng(2).normal(size=(3, 3, 3))  # a generic scalar loss of R
+
+    if backend.name == "torch":
+        x = torch.tensor(raw, requires_grad=True)
+        (tnn.representation_to_matrix(x, representation) * torch.tensor(weights)).sum().backward()
+        assert x.grad is not None
+        grad = x.grad.numpy()
+    else:
+        fn = lambda x: jnp.sum(jnn.representation_to_matrix(x, representation) * jnp.asarray(weights))  # noqa: E731
+        grad = np.asarray(jax.grad(fn)(jnp.asarray(raw)))
+    # Central differences, every perturbation evaluated in one batched call (a leading batch axis).
+    h = 1e-6
+    steps = h * np.eye(raw.size).reshape(raw.size, *raw.shape)
+    batched = np.concatenate([raw + steps, raw - steps])
+    losses = np.sum(to_matrix(backend, batched, representation) * weights, axis=(-3, -2, -1))
+    fd = ((losses[: raw.size] - losses[raw.size :]) / (2 * h)).reshape(raw.shape)
+    np.testing.assert_allclose(grad, fd, atol=1e-6)
+
+
+@pytest.mark.parametrize("representation", REPRESENTATIONS)
+def test_jax_head_traces_under_jit_and_vmap(representation: str) -> None:
+    raw = jnp.asarray(raw_outputs(representation))
+    eager = jnn.representation_to_matrix(raw, representation)
+    jitted = jax.jit(jnn.representation_to_matrix, static_argnums=1)(raw, representation)
+    mapped = jax.vmap(lambda r: jnn.representation_to_matrix(r, representation))(raw)
+    np.testing.assert_allclose(jitted, eager, atol=1e-12)
+    np.testing.assert_allclose(mapped, eager, atol=1e-12)
+
+
+@pytest.mark.parametrize("representation", REPRESENTATIONS)
+def test_torch_head_runs_under_torch_func_vmap(representation: str) -> None:
+    raw = torch.tensor(raw_outputs(representation))
+    mapped = torch.func.vmap(lambda r: tnn.representation_to_matrix(r, representation))(raw)
+    torch.testing.assert_close(mapped, tnn.representation_to_matrix(raw, representation))
+
+
+@pytest.mark.parametrize("representation", REPRESENTATIONS)
+def test_torch_layer_and_jax_functions_have_the_same_parameters(representation: str) -> None:
+    layer = tnn.RotationHead(7, representation=representation, dtype=torch.float64)
+    params = jnn.init_rotation_head(jax.random.key(0), 7, representation)
+    n = SIZES[representation]
+    assert layer.linear.weight.shape == (n, 7) and params["w"].shape == (7, n)
+    assert layer.linear.bias is not None and layer.linear.bias.shape == params["b"].shape == (n,)
+    # The same initialisation bounds as torch.nn.Linear (uniform in +-1/sqrt(in_features)).
+    assert float(jnp.max(jnp.abs(params["w"]))) <= 1 / np.sqrt(7)
+    # The same weights give the same matrices on both backends.
+    features = np.random.default_rng(3).normal(size=(2, 5, 7))
+    with torch.no_grad():
+        layer.linear.weight.copy_(torch.tensor(np.asarray(params["w"]).T))
+        layer.linear.bias.copy_(torch.tensor(np.asarray(params["b"])))
+        ours = layer(torch.tensor(features)).numpy()
+    theirs = np.asarray(jnn.rotation_head(params, jnp.asarray(features), representation))
+    assert ours.shape == (2, 5, 3, 3)
+    np.testing.assert_allclose(ours, theirs, atol=1e-12)
+    assert repr(representation) in repr(layer)
+
+
+def test_torch_layer_trains_its_parameters() -> None:
+    layer = tnn.RotationHead(5, "6d", dtype=torch.float64)
+    layer(torch.randn(4, 5, dtype=torch.float64)).sum().backward()
+    for p in layer.parameters():
+        assert p.grad is not None and bool(torch.all(torch.isfinite(p.grad))) and bool(torch.any(p.grad != 0))
+
+
+@heads
+def test_unknown_representation_and_wrong_size_raise(backend: Backend) -> None:
+    nn = tnn if backend.name == "torch" else jnn
+    with pytest.raises(ValueError, match=r"unknown rotation representation 'rot6d'.*'6d'"):
+        nn.representation_size("rot6d")
+    with pytest.raises(ValueError, match=r"expected raw of shape \(\.\.\., 6\).*'6d', got shape \(2, 9\)"):
+        nn.representation_to_matrix(backend.array(np.zeros((2, 9)), "float64"), "6d")
