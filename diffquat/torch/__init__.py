@@ -10,6 +10,7 @@ from torch import Tensor
 
 from .. import _core
 from .._backend import Backend, documented, shape_tuple
+from . import _fused
 
 __all__ = [
     "matrix_to_quaternion",
@@ -40,12 +41,26 @@ _B = Backend(
 
 @documented(_core.quaternion_to_matrix)
 def quaternion_to_matrix(q: Tensor, *, scalar_first: bool = True) -> Tensor:
-    return _B(_core.quaternion_to_matrix, q, scalar_first=scalar_first)
+    # Small eager batches: the fused autograd.Function. Large ones, and under torch.compile (where
+    # inductor fuses the plain formula with the user's code): the core formula.
+    fused = (
+        isinstance(q, Tensor)
+        and q.numel() <= 4 * _fused.MAX_FUSED_BATCH
+        and not torch.compiler.is_compiling()
+    )
+    fn = _fused.quaternion_to_matrix if fused else _core.quaternion_to_matrix
+    return _B(fn, q, scalar_first=scalar_first)
 
 
 @documented(_core.matrix_to_quaternion)
 def matrix_to_quaternion(matrix: Tensor, *, scalar_first: bool = True) -> Tensor:
-    return _B(_core.matrix_to_quaternion, matrix, scalar_first=scalar_first)
+    fused = (
+        isinstance(matrix, Tensor)
+        and matrix.numel() <= 9 * _fused.MAX_FUSED_BATCH
+        and not torch.compiler.is_compiling()
+    )
+    fn = _fused.matrix_to_quaternion if fused else _core.matrix_to_quaternion
+    return _B(fn, matrix, scalar_first=scalar_first)
 
 
 @documented(_core.standardize_quaternion)
