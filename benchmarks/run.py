@@ -87,6 +87,10 @@ def build_ops(quick: bool) -> list[OpSpec]:
     import diffquat.torch as dqt
     from diffquat import _core
 
+    # Several batch sizes and modes: one static graph, then a dynamic-shape one (torch defaults).
+    torch._dynamo.config.recompile_limit = 64
+    torch._dynamo.config.accumulated_recompile_limit = 1024
+
     def compiled(fn: Callable[[Any], Any]) -> Callable[[Any], Any]:
         return torch.compile(fn, fullgraph=True)
 
@@ -458,7 +462,7 @@ def run(quick: bool, out_dir: Path) -> dict[str, Any]:
     import torch
 
     sizes = QUICK_SIZES if quick else FULL_SIZES
-    repeats, block_s = (3, 0.002) if quick else (5, 0.02)
+    repeats, block_s = (3, 0.002) if quick else (3, 0.01)
     ops = build_ops(quick)
     load_before = os.getloadavg()
     started = time.time()

@@ -41,26 +41,13 @@ _B = Backend(
 
 @documented(_core.quaternion_to_matrix)
 def quaternion_to_matrix(q: Tensor, *, scalar_first: bool = True) -> Tensor:
-    # Small eager batches: the fused autograd.Function. Large ones, and under torch.compile (where
-    # inductor fuses the plain formula with the user's code): the core formula.
-    fused = (
-        isinstance(q, Tensor)
-        and q.numel() <= 4 * _fused.MAX_FUSED_BATCH
-        and not torch.compiler.is_compiling()
-    )
-    fn = _fused.quaternion_to_matrix if fused else _core.quaternion_to_matrix
-    return _B(fn, q, scalar_first=scalar_first)
+    # The fused Function, the Triton kernels or the core formula: see _fused.q2m_path.
+    return _B(_fused.q2m_path(q), q, scalar_first=scalar_first)
 
 
 @documented(_core.matrix_to_quaternion)
 def matrix_to_quaternion(matrix: Tensor, *, scalar_first: bool = True) -> Tensor:
-    fused = (
-        isinstance(matrix, Tensor)
-        and matrix.numel() <= 9 * _fused.MAX_FUSED_BATCH
-        and not torch.compiler.is_compiling()
-    )
-    fn = _fused.matrix_to_quaternion if fused else _core.matrix_to_quaternion
-    return _B(fn, matrix, scalar_first=scalar_first)
+    return _B(_fused.m2q_path(matrix), matrix, scalar_first=scalar_first)
 
 
 @documented(_core.standardize_quaternion)

@@ -16,12 +16,13 @@ formula instead, so that inductor fuses it with the user's surrounding code.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import torch
 from torch import Tensor
 
-from .. import _fused
+from .. import _core, _fused
 
 _TABLES = {
     "q2m_index": (_fused.Q2M_INDEX, torch.long),
@@ -68,6 +69,16 @@ def _q2m(q: Tensor) -> Tensor:
     return _split(flat, 3, 3)
 
 
+def q2m_backward(q: Tensor, grad: Tensor) -> Tensor:
+    """``dL/dq`` (scalar first) from ``dL/dR``, in differentiable torch operations."""
+    # dL/dP: each of the 18 terms sends its entry's cotangent, signed, to its product.
+    entries = torch.index_select(torch.flatten(grad, -2), -1, _table("q2m_entry", q))
+    terms = entries * _table("q2m_sign", q)
+    forms = torch.zeros((*terms.shape[:-1], 16), dtype=terms.dtype, device=terms.device)
+    forms = torch.index_add(forms, -1, _table("q2m_index", q), terms)
+    return _fused.q2m_gradient(torch, q, _fused.q2m_scale(torch, q), _split(forms, 4, 4))
+
+
 class QuaternionToMatrix(torch.autograd.Function):
     generate_vmap_rule = True
 
@@ -83,13 +94,7 @@ class QuaternionToMatrix(torch.autograd.Function):
     @staticmethod
     def backward(ctx: Any, grad: Tensor) -> Tensor:
         (q,) = ctx.saved_tensors
-        # dL/dP: each of the 18 terms sends its entry's cotangent, signed, to its product.
-        terms = torch.index_select(torch.flatten(grad, -2), -1, _table("q2m_entry", q)) * _table(
-            "q2m_sign", q
-        )
-        forms = torch.zeros((*terms.shape[:-1], 16), dtype=terms.dtype, device=terms.device)
-        forms = torch.index_add(forms, -1, _table("q2m_index", q), terms)
-        return _fused.q2m_gradient(torch, q, _fused.q2m_scale(torch, q), _split(forms, 4, 4))
+        return q2m_backward(q, grad)
 
     @staticmethod
     def jvp(ctx: Any, tangent: Tensor) -> Tensor:
@@ -165,16 +170,47 @@ class MatrixToQuaternion(torch.autograd.Function):
 MAX_FUSED_BATCH = 1024
 
 # Scalar-last (x, y, z, w) <-> scalar-first (w, x, y, z) positions.
-_TO_FIRST = [3, 0, 1, 2]
-_TO_LAST = [1, 2, 3, 0]
+TO_FIRST = [3, 0, 1, 2]
+TO_LAST = [1, 2, 3, 0]
 
 
 def quaternion_to_matrix(xp: Any, q: Tensor, *, scalar_first: bool = True) -> Tensor:
     """Fused :func:`diffquat._core.quaternion_to_matrix` (same name: the backend validates by it)."""
-    return QuaternionToMatrix.apply(q if scalar_first else q[..., _TO_FIRST])  # type: ignore[no-untyped-call]
+    return QuaternionToMatrix.apply(q if scalar_first else q[..., TO_FIRST])  # type: ignore[no-untyped-call]
 
 
 def matrix_to_quaternion(xp: Any, matrix: Tensor, *, scalar_first: bool = True) -> Tensor:
     """Fused :func:`diffquat._core.matrix_to_quaternion` (same name: the backend validates by it)."""
     q: Tensor = MatrixToQuaternion.apply(matrix)  # type: ignore[no-untyped-call]
-    return q if scalar_first else q[..., _TO_LAST]
+    return q if scalar_first else q[..., TO_LAST]
+
+
+def _triton_usable(x: Tensor) -> bool:
+    """CUDA tensor, Triton importable, and no torch.func transform active (a kernel has no vmap rule)."""
+    if not x.is_cuda or torch._C._are_functorch_transforms_active():
+        return False
+    try:
+        from . import _triton  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def q2m_path(q: Any) -> Callable[..., Tensor]:
+    """The implementation of ``quaternion_to_matrix`` for this call: the core formula under
+    ``torch.compile`` (inductor fuses it with the user's code) and for large CPU batches; the Triton
+    kernels on CUDA; the fused Function for small eager batches."""
+    if not isinstance(q, Tensor) or torch.compiler.is_compiling():
+        return _core.quaternion_to_matrix
+    if _triton_usable(q):
+        from . import _triton
+
+        return _triton.quaternion_to_matrix
+    return quaternion_to_matrix if q.numel() <= 4 * MAX_FUSED_BATCH else _core.quaternion_to_matrix
+
+
+def m2q_path(matrix: Any) -> Callable[..., Tensor]:
+    """The implementation of ``matrix_to_quaternion`` for this call (no Triton kernel yet)."""
+    if not isinstance(matrix, Tensor) or torch.compiler.is_compiling():
+        return _core.matrix_to_quaternion
+    return matrix_to_quaternion if matrix.numel() <= 9 * MAX_FUSED_BATCH else _core.matrix_to_quaternion
