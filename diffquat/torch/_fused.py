@@ -79,17 +79,21 @@ def q2m_backward(q: Tensor, grad: Tensor) -> Tensor:
     return _fused.q2m_gradient(torch, q, _fused.q2m_scale(torch, q), _split(forms, 4, 4))
 
 
-class QuaternionToMatrix(torch.autograd.Function):
-    generate_vmap_rule = True
+class _SavesInput(torch.autograd.Function):
+    """A Function of one tensor that keeps only that tensor for backward and forward mode."""
 
-    @staticmethod
-    def forward(q: Tensor) -> Tensor:
-        return _q2m(q)
+    generate_vmap_rule = True
 
     @staticmethod
     def setup_context(ctx: Any, inputs: tuple[Tensor], output: Tensor) -> None:
         ctx.save_for_backward(inputs[0])
         ctx.save_for_forward(inputs[0])
+
+
+class QuaternionToMatrix(_SavesInput):
+    @staticmethod
+    def forward(q: Tensor) -> Tensor:
+        return _q2m(q)
 
     @staticmethod
     def backward(ctx: Any, grad: Tensor) -> Tensor:
@@ -127,18 +131,11 @@ def _select(matrix: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     return c, inv, pivot
 
 
-class MatrixToQuaternion(torch.autograd.Function):
-    generate_vmap_rule = True
-
+class MatrixToQuaternion(_SavesInput):
     @staticmethod
     def forward(matrix: Tensor) -> Tensor:
         c, inv, _ = _select(matrix)
         return c * inv
-
-    @staticmethod
-    def setup_context(ctx: Any, inputs: tuple[Tensor], output: Tensor) -> None:
-        ctx.save_for_backward(inputs[0])
-        ctx.save_for_forward(inputs[0])
 
     @staticmethod
     def backward(ctx: Any, grad: Tensor) -> Tensor:

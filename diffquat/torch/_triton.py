@@ -30,13 +30,19 @@ def _scale(w: Any, x: Any, y: Any, z: Any, tiny: Any) -> Any:
 
 
 @triton.jit  # type: ignore[untyped-decorator]
-def _q2m_forward_kernel(q_ptr: Any, out_ptr: Any, n: Any, tiny: Any, block: tl.constexpr) -> None:
-    i = tl.program_id(0) * block + tl.arange(0, block)
-    mask = i < n
+def _load_quaternion(q_ptr: Any, i: Any, mask: Any) -> Any:
     w = tl.load(q_ptr + 4 * i, mask=mask, other=0.0)
     x = tl.load(q_ptr + 4 * i + 1, mask=mask, other=0.0)
     y = tl.load(q_ptr + 4 * i + 2, mask=mask, other=0.0)
     z = tl.load(q_ptr + 4 * i + 3, mask=mask, other=0.0)
+    return w, x, y, z
+
+
+@triton.jit  # type: ignore[untyped-decorator]
+def _q2m_forward_kernel(q_ptr: Any, out_ptr: Any, n: Any, tiny: Any, block: tl.constexpr) -> None:
+    i = tl.program_id(0) * block + tl.arange(0, block)
+    mask = i < n
+    w, x, y, z = _load_quaternion(q_ptr, i, mask)
     s = _scale(w, x, y, z, tiny)
     sx, sy, sz = s * x, s * y, s * z
     xx, yy, zz = sx * x, sy * y, sz * z
@@ -60,10 +66,7 @@ def _q2m_backward_kernel(
 ) -> None:
     i = tl.program_id(0) * block + tl.arange(0, block)
     mask = i < n
-    w = tl.load(q_ptr + 4 * i, mask=mask, other=0.0)
-    x = tl.load(q_ptr + 4 * i + 1, mask=mask, other=0.0)
-    y = tl.load(q_ptr + 4 * i + 2, mask=mask, other=0.0)
-    z = tl.load(q_ptr + 4 * i + 3, mask=mask, other=0.0)
+    w, x, y, z = _load_quaternion(q_ptr, i, mask)
     g = g_ptr + 9 * i
     g00 = tl.load(g, mask=mask, other=0.0)
     g01 = tl.load(g + 1, mask=mask, other=0.0)
