@@ -458,12 +458,12 @@ def _fmt_time(seconds: float) -> str:
     return f"{us:.3g} µs" if us < 1000 else f"{us / 1000:.3g} ms"
 
 
-def run(quick: bool, out_dir: Path) -> dict[str, Any]:
+def run(quick: bool, out_dir: Path, only: list[str] | None = None) -> dict[str, Any]:
     import torch
 
     sizes = QUICK_SIZES if quick else FULL_SIZES
     repeats, block_s = (3, 0.002) if quick else (3, 0.01)
-    ops = build_ops(quick)
+    ops = [op for op in build_ops(quick) if only is None or op.name in only]
     load_before = os.getloadavg()
     started = time.time()
     results: dict[str, Any] = {"quick": quick, "sizes": list(sizes), "ops": {}}
@@ -497,11 +497,28 @@ def run(quick: bool, out_dir: Path) -> dict[str, Any]:
     results["load"] = {"before": load_before, "after": os.getloadavg()}
     results["machine"] = machine()
     results["torch_threads"] = torch.get_num_threads()
+    write(results, out_dir)
+    return results
+
+
+def write(results: dict[str, Any], out_dir: Path) -> None:
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "results.json").write_text(json.dumps(results, indent=1))
     (out_dir / "RESULTS.md").write_text(render(results))
     plot(results, out_dir / "results.png")
-    return results
+
+
+def merge(paths: list[Path]) -> dict[str, Any]:
+    """One report from runs of different operations (``--ops``) made side by side on one machine."""
+    runs = [json.loads(p.read_text()) for p in paths]
+    merged = {**runs[0], "ops": {}, "seconds": max(r["seconds"] for r in runs)}
+    merged["load"] = {
+        "before": max((r["load"]["before"] for r in runs), key=lambda x: x[0]),
+        "after": max((r["load"]["after"] for r in runs), key=lambda x: x[0]),
+    }
+    for r in runs:
+        merged["ops"].update(r["ops"])
+    return merged
 
 
 TORCH_PEERS = ("roma", "kornia", "pytorch-kinematics")
@@ -634,8 +651,13 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="small N, few repeats: seconds")
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent)
+    parser.add_argument("--ops", help="comma-separated operation names (default: all)")
+    parser.add_argument("--merge", type=Path, nargs="+", help="render one report from these results.json")
     args = parser.parse_args(argv)
-    run(args.quick, args.out)
+    if args.merge:
+        write(merge(args.merge), args.out)
+        return
+    run(args.quick, args.out, args.ops.split(",") if args.ops else None)
 
 
 if __name__ == "__main__":
