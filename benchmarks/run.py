@@ -564,6 +564,17 @@ def render(results: dict[str, Any]) -> str:
         f"{tuple(round(x, 2) for x in results['load']['after'])}: other jobs shared the machine, so "
         "absolute times are noisy; ratios between rows of one table were taken side by side.",
         "",
+        *(
+            [
+                f"**Warning: the load average exceeded the {results['machine']['cpus']} cores during "
+                "this run; blocks of one method differ by up to the spreads given under each table, "
+                "and the ratios below are not reliable. Rerun on a quiet machine.**",
+                "",
+            ]
+            if max(results["load"]["before"][0], results["load"]["after"][0])
+            > float(results["machine"]["cpus"])
+            else []
+        ),
         "GPU figures (Triton kernels on CUDA): still to be measured; this run had no GPU.",
         "",
         "## Machine and versions",
