@@ -10,6 +10,7 @@ from torch import Tensor
 
 from .. import _core
 from .._backend import Backend, documented, shape_tuple
+from . import _fused
 
 __all__ = [
     "matrix_to_quaternion",
@@ -40,12 +41,13 @@ _B = Backend(
 
 @documented(_core.quaternion_to_matrix)
 def quaternion_to_matrix(q: Tensor, *, scalar_first: bool = True) -> Tensor:
-    return _B(_core.quaternion_to_matrix, q, scalar_first=scalar_first)
+    # The fused Function, the Triton kernels or the core formula: see _fused.q2m_path.
+    return _B(_fused.q2m_path(q), q, scalar_first=scalar_first)
 
 
 @documented(_core.matrix_to_quaternion)
 def matrix_to_quaternion(matrix: Tensor, *, scalar_first: bool = True) -> Tensor:
-    return _B(_core.matrix_to_quaternion, matrix, scalar_first=scalar_first)
+    return _B(_fused.m2q_path(matrix), matrix, scalar_first=scalar_first)
 
 
 @documented(_core.standardize_quaternion)

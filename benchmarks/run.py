@@ -1,0 +1,675 @@
+"""Side-by-side benchmark of diffquat against its peers, with a memory-bandwidth roofline and an
+accuracy table from the same run. ``python -m benchmarks.run [--quick] [--out DIR]``.
+
+Every method is timed in float32 on the same rotations, forward and forward + backward, at each batch
+size N. Times are medians over interleaved blocks (block b of every method runs before block b + 1 of
+any), so slow drifts of a shared machine hit all methods alike; the first call (warm-up, and for
+``torch.compile``/``jax.jit`` the compilation) is reported apart. The roofline row is a tensor copy that
+moves the same bytes as the conversion (input read + output written; forward + backward adds the
+input and the cotangent read and the input gradient written): each time is also a fraction of it.
+The peers are benchmark-only dependencies (the ``bench`` extra); a missing one is left out and named.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "tests"))
+
+import cases  # noqa: E402  (the test suite's named cases: the accuracy table runs on them)
+
+FULL_SIZES = (1, 64, 4096, 262144, 4194304)
+QUICK_SIZES = (1, 64)
+# Floats per rotation of each representation.
+WIDTH = {"quaternion": 4, "matrix": 9, "rotvec": 3}
+
+
+@dataclass
+class Method:
+    """One implementation of one operation. ``prep`` turns float32 NumPy input (diffquat's convention:
+    scalar-first quaternions) into the library's native input; ``post`` turns its output back."""
+
+    label: str
+    family: str  # "torch", "jax" or "numpy" (forward only)
+    fn: Callable[[Any], Any]
+    prep: Callable[[np.ndarray], np.ndarray] = lambda x: x
+    post: Callable[[np.ndarray], np.ndarray] = lambda y: y
+    compiled: bool = False
+
+
+@dataclass
+class OpSpec:
+    name: str
+    source: str  # input representation
+    target: str  # output representation
+    methods: list[Method]
+    skipped: list[str]
+
+
+def _xyzw(q: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(q[..., [1, 2, 3, 0]])
+
+
+def _wxyz(q: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(q[..., [3, 0, 1, 2]])
+
+
+def _try(skipped: list[str], label: str, build: Callable[[], Method | list[Method]]) -> list[Method]:
+    try:
+        built = build()
+    except (ImportError, AttributeError) as error:  # a peer not installed, or without this operation
+        skipped.append(f"{label} ({type(error).__name__}: {error})")
+        return []
+    return built if isinstance(built, list) else [built]
+
+
+def build_ops(quick: bool) -> list[OpSpec]:
+    import jax
+    import torch
+
+    import diffquat.jax as dqj
+    import diffquat.numpy as dqn
+    import diffquat.torch as dqt
+    from diffquat import _core
+
+    # Several batch sizes and modes: one static graph, then a dynamic-shape one (torch defaults).
+    torch._dynamo.config.recompile_limit = 64
+    torch._dynamo.config.accumulated_recompile_limit = 1024
+
+    def compiled(fn: Callable[[Any], Any]) -> Callable[[Any], Any]:
+        return torch.compile(fn, fullgraph=True)
+
+    ops: list[OpSpec] = []
+    # (name, source, target, peer builders). Axis-angle rows appear once diffquat has those functions.
+    table: list[tuple[str, str, str, dict[str, Callable[[], Method | list[Method]]]]] = []
+
+    def roma_q2m() -> Method:
+        import roma
+
+        return Method("roma", "torch", roma.unitquat_to_rotmat, prep=_xyzw)
+
+    def roma_m2q() -> Method:
+        import roma
+
+        return Method("roma", "torch", roma.rotmat_to_unitquat, post=_wxyz)
+
+    def kornia_q2m() -> Method:
+        from kornia.geometry import conversions as kc
+
+        return Method("kornia", "torch", kc.quaternion_to_rotation_matrix)
+
+    def kornia_m2q() -> Method:
+        from kornia.geometry import conversions as kc
+
+        return Method("kornia", "torch", kc.rotation_matrix_to_quaternion)
+
+    def pk_fn(name: str) -> Callable[[], Method]:
+        def build() -> Method:
+            import pytorch_kinematics as pk
+
+            return Method("pytorch-kinematics", "torch", getattr(pk, name))
+
+        return build
+
+    def jaxlie_q2m() -> Method:
+        import jaxlie
+
+        return Method("jaxlie (jit)", "jax", jax.jit(jax.vmap(lambda q: jaxlie.SO3(q).as_matrix())))
+
+    def jaxlie_m2q() -> Method:
+        import jaxlie
+
+        return Method("jaxlie (jit)", "jax", jax.jit(jax.vmap(lambda m: jaxlie.SO3.from_matrix(m).wxyz)))
+
+    def jaxlie_aa2m() -> Method:
+        import jaxlie
+
+        return Method("jaxlie (jit)", "jax", jax.jit(jax.vmap(lambda v: jaxlie.SO3.exp(v).as_matrix())))
+
+    def jaxlie_m2aa() -> Method:
+        import jaxlie
+
+        return Method("jaxlie (jit)", "jax", jax.jit(jax.vmap(lambda m: jaxlie.SO3.from_matrix(m).log())))
+
+    def roma_fn(name: str) -> Callable[[], Method]:
+        def build() -> Method:
+            import roma
+
+            return Method("roma", "torch", getattr(roma, name))
+
+        return build
+
+    def kornia_fn(name: str) -> Callable[[], Method]:
+        def build() -> Method:
+            from kornia.geometry import conversions as kc
+
+            return Method("kornia", "torch", getattr(kc, name))
+
+        return build
+
+    def scipy_fn(kind: str) -> Callable[[], Method]:
+        def build() -> Method:
+            fns = {
+                "q2m": lambda q: Rotation.from_quat(q).as_matrix(),
+                "m2q": lambda m: Rotation.from_matrix(m).as_quat(canonical=True),
+                "aa2m": lambda v: Rotation.from_rotvec(v).as_matrix(),
+                "m2aa": lambda m: Rotation.from_matrix(m).as_rotvec(),
+            }
+            pre = _xyzw if kind == "q2m" else (lambda x: x)
+            post = _wxyz if kind == "m2q" else (lambda y: y)
+            return Method("scipy", "numpy", fns[kind], prep=pre, post=post)
+
+        return build
+
+    table.append(
+        (
+            "quaternion_to_matrix",
+            "quaternion",
+            "matrix",
+            {"roma": roma_q2m, "kornia": kornia_q2m, "pytorch-kinematics": pk_fn("quaternion_to_matrix"),
+             "jaxlie": jaxlie_q2m, "scipy": scipy_fn("q2m")},
+        )
+    )  # fmt: skip
+    table.append(
+        (
+            "matrix_to_quaternion",
+            "matrix",
+            "quaternion",
+            {"roma": roma_m2q, "kornia": kornia_m2q, "pytorch-kinematics": pk_fn("matrix_to_quaternion"),
+             "jaxlie": jaxlie_m2q, "scipy": scipy_fn("m2q")},
+        )
+    )  # fmt: skip
+    table.append(
+        (
+            "axis_angle_to_matrix",
+            "rotvec",
+            "matrix",
+            {"roma": roma_fn("rotvec_to_rotmat"), "kornia": kornia_fn("axis_angle_to_rotation_matrix"),
+             "pytorch-kinematics": pk_fn("axis_angle_to_matrix"), "jaxlie": jaxlie_aa2m,
+             "scipy": scipy_fn("aa2m")},
+        )
+    )  # fmt: skip
+    table.append(
+        (
+            "matrix_to_axis_angle",
+            "matrix",
+            "rotvec",
+            {"roma": roma_fn("rotmat_to_rotvec"), "kornia": kornia_fn("rotation_matrix_to_axis_angle"),
+             "pytorch-kinematics": pk_fn("matrix_to_axis_angle"), "jaxlie": jaxlie_m2aa,
+             "scipy": scipy_fn("m2aa")},
+        )
+    )  # fmt: skip
+
+    for name, source, target, peers in table:
+        if not hasattr(dqt, name):
+            continue
+        skipped: list[str] = []
+        methods = [Method("diffquat torch eager", "torch", getattr(dqt, name))]
+        if not quick:
+            methods.append(
+                Method("diffquat torch.compile", "torch", compiled(getattr(dqt, name)), compiled=True)
+            )
+            if hasattr(_core, name):
+                core_fn = getattr(_core, name)
+                methods.append(
+                    Method(
+                        "hand-written formula, torch.compile",
+                        "torch",
+                        compiled(lambda x, f=core_fn: f(torch, x)),
+                        compiled=True,
+                    )
+                )
+        methods.append(Method("diffquat jax.jit", "jax", jax.jit(getattr(dqj, name)), compiled=True))
+        methods.append(Method("diffquat numpy", "numpy", getattr(dqn, name)))
+        for label, build in peers.items():
+            methods += _try(skipped, label, build)
+        for m in methods:
+            if m.label == "jaxlie (jit)":
+                m.compiled = True
+        ops.append(OpSpec(name, source, target, methods, skipped))
+    return ops
+
+
+# ---------------------------------------------------------------------------------------------------
+# Inputs
+
+
+def unit_quaternions(n: int, seed: int = 0) -> np.ndarray:
+    return cases.uniform_quaternions(n, seed=seed)
+
+
+def make_input(representation: str, q: np.ndarray) -> np.ndarray:
+    """float64 input of the given representation for scalar-first unit quaternions ``q``."""
+    rotation = Rotation.from_quat(_xyzw(q))
+    if representation == "quaternion":
+        return q
+    if representation == "matrix":
+        return rotation.as_matrix()
+    return rotation.as_rotvec()
+
+
+# ---------------------------------------------------------------------------------------------------
+# Timing
+
+
+def _sync(out: Any) -> Any:
+    if hasattr(out, "block_until_ready"):
+        out.block_until_ready()
+    elif isinstance(out, (tuple, list)):
+        for o in out:
+            _sync(o)
+    return out
+
+
+def make_call(method: Method, x32: np.ndarray, backward: bool) -> Callable[[], Any] | None:
+    """A zero-argument callable running the method once (forward, or forward + backward)."""
+    native = np.ascontiguousarray(method.prep(x32), dtype=np.float32)
+    if method.family == "numpy":
+        if backward:
+            return None
+        return lambda: method.fn(native)
+    if method.family == "torch":
+        import torch
+
+        xt = torch.from_numpy(native)
+        if not backward:
+
+            def forward() -> Any:
+                with torch.no_grad():
+                    return method.fn(xt)
+
+            return forward
+        leaf = xt.clone().requires_grad_(True)
+        cot = torch.ones_like(method.fn(leaf.detach()))
+        return lambda: torch.autograd.grad(method.fn(leaf), leaf, cot)
+    import jax
+    import jax.numpy as jnp
+
+    xj = jnp.asarray(native)
+    if not backward:
+        return lambda: _sync(method.fn(xj))
+    cot = jnp.ones_like(method.fn(xj))
+    vjp = jax.jit(lambda x, c: jax.vjp(method.fn, x)[1](c))
+    return lambda: _sync(vjp(xj, cot))
+
+
+def roofline_call(floats_per_rotation: int, n: int) -> Callable[[], Any]:
+    """A tensor copy moving ``floats_per_rotation`` float32 per rotation in total (half read, half
+    written): the memory-bandwidth bound of an operation with that traffic."""
+    import torch
+
+    numel = max(1, (floats_per_rotation * n + 1) // 2)
+    src = torch.ones(numel, dtype=torch.float32)
+    dst = torch.empty_like(src)
+    return lambda: dst.copy_(src)
+
+
+@dataclass
+class Timing:
+    median_s: float = float("nan")
+    spread: float = float("nan")  # (max - min) / median over blocks
+    first_s: float = float("nan")  # the first call: warm-up, and compilation for compiled methods
+
+
+def time_all(calls: dict[str, Callable[[], Any]], repeats: int, block_s: float) -> dict[str, Timing]:
+    timings = {label: Timing() for label in calls}
+    per_block: dict[str, int] = {}
+    for label, call in calls.items():
+        start = time.perf_counter()
+        _sync(call())
+        timings[label].first_s = time.perf_counter() - start
+        start = time.perf_counter()
+        _sync(call())
+        once = max(time.perf_counter() - start, 1e-7)
+        per_block[label] = max(1, int(block_s / once))
+    samples: dict[str, list[float]] = {label: [] for label in calls}
+    for _ in range(repeats):
+        for label, call in calls.items():
+            k = per_block[label]
+            start = time.perf_counter()
+            for _ in range(k):
+                out = call()
+            _sync(out)
+            samples[label].append((time.perf_counter() - start) / k)
+    for label, s in samples.items():
+        med = statistics.median(s)
+        timings[label].median_s = med
+        timings[label].spread = (max(s) - min(s)) / med
+    return timings
+
+
+# ---------------------------------------------------------------------------------------------------
+# Accuracy on the test suite's named cases
+
+
+ACCURACY_CASES = ("random", "identity", "half_turns", "near_half_turns", "near_identity", "sign_flip")
+
+
+def _matrix_error(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.max(np.abs(a - b))) if a.size else 0.0
+
+
+def accuracy(op: OpSpec, method: Method) -> tuple[float, bool | None]:
+    """Max float32 error against scipy float64 over the shared cases, and whether the gradient of a
+    random weighted sum of the output is finite at every one of them (None: not differentiable)."""
+    worst, finite = 0.0, True
+    for name in ACCURACY_CASES:
+        q = cases.oracle_normalize(cases.CASES_BY_NAME[name].quaternions("float64").reshape(-1, 4))
+        x64 = make_input(op.source, q)
+        rotation = Rotation.from_quat(_xyzw(q))
+        native = np.ascontiguousarray(method.prep(x64.astype(np.float32)))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            out, grad_finite = _run_with_grad(method, native)
+        got = np.asarray(method.post(np.asarray(out, dtype=np.float64)))
+        if op.target == "matrix":
+            err = _matrix_error(got, rotation.as_matrix())
+        elif op.target == "quaternion":
+            # up to sign: at half-turns w = 0 and rounding legitimately picks the sign
+            expected = _wxyz(rotation.as_quat(canonical=True))
+            err = (
+                min(_matrix_error(got, expected), _matrix_error(got, -expected))
+                if len(q) == 1
+                else float(np.max(np.minimum(np.abs(got - expected).max(-1), np.abs(got + expected).max(-1))))
+            )
+        else:  # a rotation vector: compared as the rotation it represents (+-pi are the same)
+            err = _matrix_error(Rotation.from_rotvec(got).as_matrix(), rotation.as_matrix())
+        worst = max(worst, err if np.isfinite(err) else float("inf"))
+        finite = None if grad_finite is None else (finite and grad_finite)
+    return worst, finite
+
+
+def _run_with_grad(method: Method, native: np.ndarray) -> tuple[np.ndarray, bool | None]:
+    weights = np.random.default_rng(0).normal(size=(native.shape[0],))
+    if method.family == "numpy":
+        return np.asarray(method.fn(native)), None
+    if method.family == "torch":
+        import torch
+
+        leaf = torch.from_numpy(native).requires_grad_(True)
+        out = method.fn(leaf)
+        w = torch.from_numpy(weights.astype(np.float32)).reshape(-1, *([1] * (out.dim() - 1)))
+        (grad,) = torch.autograd.grad((out * w).sum(), leaf)
+        return out.detach().numpy(), bool(torch.isfinite(grad).all())
+    import jax
+    import jax.numpy as jnp
+
+    xj = jnp.asarray(native)
+    out = method.fn(xj)
+    w = jnp.asarray(weights.astype(np.float32)).reshape(-1, *([1] * (out.ndim - 1)))
+    grad = jax.grad(lambda x: (method.fn(x) * w).sum())(xj)
+    return np.asarray(out), bool(jnp.isfinite(grad).all())
+
+
+# ---------------------------------------------------------------------------------------------------
+# Report
+
+
+def machine() -> dict[str, str]:
+    import jax
+    import torch
+
+    info = {
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cpus": str(os.cpu_count()),
+        "torch threads": str(torch.get_num_threads()),
+        "numpy": np.__version__,
+        "torch": torch.__version__,
+        "jax": jax.__version__,
+        "jax devices": ", ".join(str(d) for d in jax.devices()),
+    }
+    try:
+        with open("/proc/cpuinfo") as f:
+            names = [line.split(":", 1)[1].strip() for line in f if line.startswith("model name")]
+        if names:
+            info["processor"] = names[0]
+    except OSError:
+        pass
+    for peer in ("scipy", "roma", "kornia", "pytorch_kinematics", "jaxlie"):
+        try:
+            module = __import__(peer)
+            info[peer] = str(getattr(module, "__version__", "installed"))
+        except ImportError:
+            info[peer] = "not installed"
+    return info
+
+
+def _fmt_time(seconds: float) -> str:
+    if not np.isfinite(seconds):
+        return "—"
+    us = seconds * 1e6
+    return f"{us:.3g} µs" if us < 1000 else f"{us / 1000:.3g} ms"
+
+
+def run(quick: bool, out_dir: Path, only: list[str] | None = None) -> dict[str, Any]:
+    import torch
+
+    sizes = QUICK_SIZES if quick else FULL_SIZES
+    repeats, block_s = (3, 0.002) if quick else (3, 0.01)
+    ops = [op for op in build_ops(quick) if only is None or op.name in only]
+    load_before = os.getloadavg()
+    started = time.time()
+    results: dict[str, Any] = {"quick": quick, "sizes": list(sizes), "ops": {}}
+    for op in ops:
+        traffic = WIDTH[op.source] + WIDTH[op.target]
+        entry: dict[str, Any] = {"skipped": op.skipped, "timings": {}, "accuracy": {}}
+        for mode, backward in (("forward", False), ("forward + backward", True)):
+            per_n: dict[str, dict[str, Timing]] = {}
+            for n in sizes:
+                x32 = make_input(op.source, unit_quaternions(n)).astype(np.float32)
+                calls = {}
+                for m in op.methods:
+                    call = make_call(m, x32, backward)
+                    if call is not None:
+                        calls[m.label] = call
+                # forward + backward moves the input and output twice plus the input gradient
+                floats = traffic + (traffic + WIDTH[op.source] if backward else 0)
+                calls["roofline (copy of the same bytes)"] = roofline_call(floats, n)
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    per_n[str(n)] = time_all(calls, repeats, block_s)
+                print(f"{op.name} {mode} N={n} done", file=sys.stderr, flush=True)
+            entry["timings"][mode] = {
+                n: {label: t.__dict__ for label, t in ts.items()} for n, ts in per_n.items()
+            }
+        for m in op.methods:
+            err, finite = accuracy(op, m)
+            entry["accuracy"][m.label] = {"max_error": err, "grad_finite": finite}
+        results["ops"][op.name] = entry
+    results["seconds"] = time.time() - started
+    results["load"] = {"before": load_before, "after": os.getloadavg()}
+    results["machine"] = machine()
+    results["torch_threads"] = torch.get_num_threads()
+    write(results, out_dir)
+    return results
+
+
+def write(results: dict[str, Any], out_dir: Path) -> None:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "results.json").write_text(json.dumps(results, indent=1))
+    (out_dir / "RESULTS.md").write_text(render(results))
+    plot(results, out_dir / "results.png")
+
+
+def merge(paths: list[Path]) -> dict[str, Any]:
+    """One report from runs of different operations (``--ops``) made side by side on one machine."""
+    runs = [json.loads(p.read_text()) for p in paths]
+    merged = {**runs[0], "ops": {}, "seconds": max(r["seconds"] for r in runs)}
+    merged["load"] = {
+        "before": max((r["load"]["before"] for r in runs), key=lambda x: x[0]),
+        "after": max((r["load"]["after"] for r in runs), key=lambda x: x[0]),
+    }
+    for r in runs:
+        merged["ops"].update(r["ops"])
+    return merged
+
+
+TORCH_PEERS = ("roma", "kornia", "pytorch-kinematics")
+
+
+def ratios(results: dict[str, Any]) -> list[str]:
+    """The issue's targets, as ratios from this run."""
+    lines = []
+    for name, entry in results["ops"].items():
+        for mode, per_n in entry["timings"].items():
+            for n, ts in per_n.items():
+                t = {label: v["median_s"] for label, v in ts.items()}
+                peers = [t[p] for p in TORCH_PEERS if p in t]
+                parts = []
+                if peers and "diffquat torch eager" in t:
+                    parts.append(
+                        f"fastest torch peer / diffquat eager = {min(peers) / t['diffquat torch eager']:.2f}x"
+                    )
+                hand = "hand-written formula, torch.compile"
+                if hand in t and "diffquat torch.compile" in t:
+                    parts.append(
+                        "diffquat compiled / hand-written compiled = "
+                        f"{t['diffquat torch.compile'] / t[hand]:.2f}"
+                    )
+                if "jaxlie (jit)" in t and "diffquat jax.jit" in t:
+                    parts.append(f"jaxlie / diffquat jax = {t['jaxlie (jit)'] / t['diffquat jax.jit']:.2f}x")
+                if parts:
+                    lines.append(f"| {name} | {mode} | {n} | " + "; ".join(parts) + " |")
+    return lines
+
+
+def render(results: dict[str, Any]) -> str:
+    out = [
+        "# Benchmark results",
+        "",
+        "Written by `python -m benchmarks.run" + (" --quick" if results["quick"] else "") + "`; "
+        "do not edit by hand. float32, CPU. Each cell: median time per call, and in parentheses the "
+        "fraction of the memory-bandwidth bound (the roofline row's time over this one's) where N >= 4096. "
+        "Medians over interleaved blocks; the first call (warm-up, compilation) is in its own table.",
+        "",
+        f"Run time {results['seconds']:.0f} s; load average (1, 5, 15 min) before "
+        f"{tuple(round(x, 2) for x in results['load']['before'])}, after "
+        f"{tuple(round(x, 2) for x in results['load']['after'])}: other jobs shared the machine, so "
+        "absolute times are noisy; ratios between rows of one table were taken side by side.",
+        "",
+        *(
+            [
+                f"**Warning: the load average exceeded the {results['machine']['cpus']} cores during "
+                "this run; blocks of one method differ by up to the spreads given under each table, "
+                "and the ratios below are not reliable. Rerun on a quiet machine.**",
+                "",
+            ]
+            if max(results["load"]["before"][0], results["load"]["after"][0])
+            > float(results["machine"]["cpus"])
+            else []
+        ),
+        "GPU figures (Triton kernels on CUDA): still to be measured; this run had no GPU.",
+        "",
+        "## Machine and versions",
+        "",
+        "| | |",
+        "|---|---|",
+        *[f"| {k} | {v} |" for k, v in results["machine"].items()],
+        "",
+        "![ns per rotation against N](results.png)",
+        "",
+        "## Key ratios (targets of issue 4)",
+        "",
+        "| op | mode | N | ratios |",
+        "|---|---|---|---|",
+        *ratios(results),
+    ]
+    sizes = results["sizes"]
+    for name, entry in results["ops"].items():
+        out += ["", f"## {name}", ""]
+        if entry["skipped"]:
+            out += ["Left out: " + "; ".join(entry["skipped"]), ""]
+        for mode, per_n in entry["timings"].items():
+            labels = list(next(iter(per_n.values())).keys())
+            out += [f"### {mode}", "", "| method | " + " | ".join(f"N = {n}" for n in sizes) + " |"]
+            out += ["|---" * (len(sizes) + 1) + "|"]
+            for label in labels:
+                cells = []
+                for n in sizes:
+                    t = per_n[str(n)][label]["median_s"]
+                    roof = per_n[str(n)]["roofline (copy of the same bytes)"]["median_s"]
+                    frac = f" ({roof / t:.0%})" if n >= 4096 else ""
+                    cells.append(_fmt_time(t) + frac)
+                out.append(f"| {label} | " + " | ".join(cells) + " |")
+            out += ["", f"First call minus median ({mode}): warm-up, and compilation where compiled.", ""]
+            out += [
+                "| method | " + " | ".join(f"N = {n}" for n in sizes) + " |",
+                "|---" * (len(sizes) + 1) + "|",
+            ]
+            for label in labels:
+                cells = [
+                    _fmt_time(per_n[str(n)][label]["first_s"] - per_n[str(n)][label]["median_s"])
+                    for n in sizes
+                ]
+                out.append(f"| {label} | " + " | ".join(cells) + " |")
+            spreads = [v["spread"] for ts in per_n.values() for v in ts.values()]
+            out += ["", f"Largest (max - min) / median over blocks in this table: {max(spreads):.0%}.", ""]
+        out += ["### Accuracy on the shared test cases", "",
+                "Max float32 error against scipy in float64 over the cases " + ", ".join(ACCURACY_CASES)
+                + " of `tests/cases.py` (unit inputs; exact half-turns included), and whether the gradient "
+                "of a weighted sum of the output is finite at every one.", "",
+                "| method | max error | finite gradients |", "|---|---|---|"]  # fmt: skip
+        for label, acc in entry["accuracy"].items():
+            finite = {None: "n/a (forward only)", True: "yes", False: "**no**"}[acc["grad_finite"]]
+            out.append(f"| {label} | {acc['max_error']:.2e} | {finite} |")
+    return "\n".join(out) + "\n"
+
+
+def plot(results: dict[str, Any], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ops = list(results["ops"])
+    fig, axes = plt.subplots(len(ops), 2, figsize=(12, 4.2 * len(ops)), squeeze=False)
+    sizes = results["sizes"]
+    for row, name in enumerate(ops):
+        for col, (mode, per_n) in enumerate(results["ops"][name]["timings"].items()):
+            ax = axes[row][col]
+            for label in per_n[str(sizes[0])]:
+                ns = [per_n[str(n)][label]["median_s"] * 1e9 / n for n in sizes]
+                style = "k--" if label.startswith("roofline") else ("-o" if "diffquat" in label else "-.x")
+                ax.loglog(sizes, ns, style, label=label, linewidth=2 if "diffquat" in label else 1)
+            ax.set_title(f"{name}, {mode}")
+            ax.set_xlabel("N (rotations per call)")
+            ax.set_ylabel("ns per rotation")
+            ax.grid(True, which="both", alpha=0.3)
+            ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="small N, few repeats: seconds")
+    parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent)
+    parser.add_argument("--ops", help="comma-separated operation names (default: all)")
+    parser.add_argument("--merge", type=Path, nargs="+", help="render one report from these results.json")
+    args = parser.parse_args(argv)
+    if args.merge:
+        write(merge(args.merge), args.out)
+        return
+    run(args.quick, args.out, args.ops.split(",") if args.ops else None)
+
+
+if __name__ == "__main__":
+    main()
