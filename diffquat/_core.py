@@ -76,15 +76,18 @@ def quaternion_to_matrix(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
     """
     w, x, y, z = split_quaternion(q, scalar_first)
     n2 = w * w + x * x + y * y + z * z
-    # Dividing by |q|^2 here, instead of normalising q first, makes the map scale invariant for one
-    # division. The zero quaternion takes the s = 0 branch, which is the identity; the double where
-    # keeps 2 / n2 (and so its gradient) finite in the branch that is thrown away.
+    # Normalise first, then use the unit formula (s = 2). Dividing by |q|^2 instead (s = 2 / n2) has
+    # the same value but puts d(1/n2)/dn2 = -1/n2^2 on the reverse-mode chain, which overflows float32
+    # for |q| below ~3e-10; through 1/sqrt(n2) every intermediate derivative stays near 1/n2.
+    # The zero quaternion takes inv = 0, which gives the identity; the double where keeps 1/sqrt (and
+    # its derivative) finite in the branch that is thrown away.
     nonzero = n2 >= xp.finfo(n2.dtype).tiny
-    s = xp.where(nonzero, 2.0 / xp.where(nonzero, n2, 1.0), 0.0)
-    sx, sy, sz = s * x, s * y, s * z
-    xx, yy, zz = sx * x, sy * y, sz * z
-    xy, xz, yz = sx * y, sx * z, sy * z
-    wx, wy, wz = sx * w, sy * w, sz * w
+    inv = xp.where(nonzero, 1.0 / xp.sqrt(xp.where(nonzero, n2, 1.0)), 0.0)
+    w, x, y, z = w * inv, x * inv, y * inv, z * inv
+    x2, y2, z2 = 2.0 * x, 2.0 * y, 2.0 * z
+    xx, yy, zz = x2 * x, y2 * y, z2 * z
+    xy, xz, yz = x2 * y, x2 * z, y2 * z
+    wx, wy, wz = x2 * w, y2 * w, z2 * w
     return stack_matrix(
         xp,
         [
