@@ -70,7 +70,7 @@ class Backend:
     def validate(self, fname: str, *arrays: Any) -> list[Any]:
         """Convert and check every array argument of core function ``fname`` against ``SHAPES``.
         An optional array argument passed as ``None`` stays ``None``."""
-        checked = []
+        checked: list[Any] = []
         for (argname, trailing), raw in zip(SHAPES[fname].items(), arrays, strict=True):
             if raw is None:
                 checked.append(None)
