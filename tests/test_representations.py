@@ -15,7 +15,6 @@ from cases import oracle_fit_rotation, oracle_special_procrustes, uniform_quater
 from conftest import BACKENDS
 
 import diffquat.numpy as dn
-import diffquat.torch as dt
 
 SQRT_EPS = float(np.finfo(np.float64).eps) ** 0.5
 
@@ -117,19 +116,3 @@ def test_fit_rotation_broadcasts_and_checks_the_number_of_points(name: str) -> N
     np.testing.assert_allclose(backend.to_numpy(out), expected, atol=1e-12)
     with pytest.raises(ValueError, match="fit_rotation: expected the same number of points N"):
         backend.module.fit_rotation(*(backend.array(x, "float64") for x in (source, target[:, :5])))
-
-
-# torch.func.jacfwd of an autograd.Function with a jvp goes through a torch.jit.script internally.
-@pytest.mark.filterwarnings("ignore:`torch.jit.script` is deprecated:DeprecationWarning")
-def test_torch_procrustes_forward_mode_matches_reverse_mode() -> None:
-    """The Function's jvp (forward-mode AD, torch.func.jacfwd) agrees with its backward."""
-    m = torch.tensor(np.random.default_rng(6).normal(size=(3, 3)))
-    np.testing.assert_allclose(
-        torch.func.jacfwd(dt.special_procrustes)(m), torch.func.jacrev(dt.special_procrustes)(m), atol=1e-12
-    )
-    a = torch.tensor(np.random.default_rng(7).normal(size=10))
-    np.testing.assert_allclose(
-        torch.func.jacfwd(dt.symmetric_matrix_to_quaternion)(a),
-        torch.func.jacrev(dt.symmetric_matrix_to_quaternion)(a),
-        atol=1e-12,
-    )

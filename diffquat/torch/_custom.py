@@ -19,7 +19,12 @@ def custom_derivative(
     and ``cotangent(xp, x, y, gy) -> gx`` (reverse mode). Both formulas are written with
     differentiable torch operations on ``x`` and on the saved *output* ``y`` (whose own gradient is
     this Function again), so double backward is exact. ``generate_vmap_rule``: the forward and the
-    formulas are batched torch code, so ``torch.func.vmap`` can run them as they are."""
+    formulas are batched torch code, so ``torch.func.vmap`` can run them as they are.
+
+    No ``jvp`` (forward mode): torch 2.13's Dynamo refuses to trace a Function that defines one
+    (``Unsupported custom jvp``), and ``torch.compile(fullgraph=True)`` matters more. ``tangent`` is
+    kept in the signature for symmetry with the jax binding, which uses it."""
+    del tangent
 
     class Function(torch.autograd.Function):
         generate_vmap_rule = True
@@ -31,17 +36,11 @@ def custom_derivative(
         @staticmethod
         def setup_context(ctx: Any, inputs: tuple[Tensor], output: Tensor) -> None:
             ctx.save_for_backward(inputs[0], output)
-            ctx.save_for_forward(inputs[0], output)
 
         @staticmethod
         def backward(ctx: Any, grad: Tensor) -> Tensor:
             x, y = ctx.saved_tensors
             return cotangent(torch, x, y, grad)
-
-        @staticmethod
-        def jvp(ctx: Any, dx: Tensor) -> Tensor:
-            x, y = ctx.saved_tensors
-            return tangent(torch, x, y, dx)
 
     Function.__name__ = Function.__qualname__ = f"_{forward.__name__}_function"
 
