@@ -17,7 +17,16 @@ F = TypeVar("F", bound=Callable[..., Any])
 
 
 def format_shape(trailing: tuple[int, ...]) -> str:
-    return "(..., " + ", ".join(str(n) for n in trailing) + ")"
+    """``(..., 3, 3)``; a -1 in the registry (any size, e.g. a number of points) prints as ``N``."""
+    return "(..., " + ", ".join("N" if n == -1 else str(n) for n in trailing) + ")"
+
+
+def matches(shape: tuple[int, ...], trailing: tuple[int, ...]) -> bool:
+    """Whether ``shape`` ends in ``trailing`` (where -1 matches any size)."""
+    if len(shape) < len(trailing):
+        return False
+    tail = shape[len(shape) - len(trailing) :]
+    return all(t in (-1, s) for s, t in zip(tail, trailing, strict=True))
 
 
 def shape_tuple(shape: int | tuple[int, ...] | list[int]) -> tuple[int, ...]:
@@ -59,21 +68,26 @@ class Backend:
         return self.float32 if dtype.itemsize < 4 else dtype
 
     def validate(self, fname: str, *arrays: Any) -> list[Any]:
-        """Convert and check every array argument of core function ``fname`` against ``SHAPES``."""
-        checked = []
+        """Convert and check every array argument of core function ``fname`` against ``SHAPES``.
+        An optional array argument passed as ``None`` stays ``None``."""
+        checked: list[Any] = []
         for (argname, trailing), raw in zip(SHAPES[fname].items(), arrays, strict=True):
+            if raw is None:
+                checked.append(None)
+                continue
             x = self.convert(fname, argname, raw)
             if not self.is_floating(x.dtype):
                 raise TypeError(f"{fname}: expected {argname} with a floating-point dtype, got {x.dtype}")
             shape = tuple(x.shape)
-            if len(shape) < len(trailing) or shape[len(shape) - len(trailing) :] != trailing:
+            if not matches(shape, trailing):
                 raise ValueError(
                     f"{fname}: expected {argname} of shape {format_shape(trailing)}, got shape {shape}"
                 )
             checked.append(x)
-        dtypes = {x.dtype for x in checked}
+        dtypes = {x.dtype for x in checked if x is not None}
         if len(dtypes) > 1:
-            names = ", ".join(f"{a}: {x.dtype}" for a, x in zip(SHAPES[fname], checked, strict=True))
+            pairs = zip(SHAPES[fname], checked, strict=True)
+            names = ", ".join(f"{a}: {x.dtype}" for a, x in pairs if x is not None)
             raise TypeError(f"{fname}: expected all arrays to have one dtype, got {names}")
         return checked
 
@@ -84,7 +98,7 @@ class Backend:
         compute = self.compute_dtype(dtype)
         if compute == dtype:
             return core_fn(self.xp, *checked, **options)
-        out = core_fn(self.xp, *(self.astype(x, compute) for x in checked), **options)
+        out = core_fn(self.xp, *(x if x is None else self.astype(x, compute) for x in checked), **options)
         if isinstance(out, tuple):
             return tuple(self.astype(o, dtype) for o in out)
         return self.astype(out, dtype)

@@ -9,14 +9,20 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import _core
+from . import _representations as _rep
 from ._backend import Backend, documented, shape_tuple
 
 __all__ = [
+    "fit_rotation",
     "matrix_to_quaternion",
+    "matrix_to_rotation_6d",
     "normalize_quaternion",
     "quaternion_to_matrix",
     "random_quaternions",
+    "rotation_6d_to_matrix",
+    "special_procrustes",
     "standardize_quaternion",
+    "symmetric_matrix_to_quaternion",
     "wxyz_to_xyzw",
     "xyzw_to_wxyz",
 ]
@@ -68,6 +74,33 @@ def wxyz_to_xyzw(q: ArrayLike) -> NDArray[Any]:
 @documented(_core.xyzw_to_wxyz)
 def xyzw_to_wxyz(q: ArrayLike) -> NDArray[Any]:
     return _B(_core.xyzw_to_wxyz, q)
+
+
+@documented(_rep.rotation_6d_to_matrix)
+def rotation_6d_to_matrix(d6: ArrayLike) -> NDArray[Any]:
+    return _B(_rep.rotation_6d_to_matrix, d6)
+
+
+@documented(_rep.matrix_to_rotation_6d)
+def matrix_to_rotation_6d(matrix: ArrayLike) -> NDArray[Any]:
+    return _B(_rep.matrix_to_rotation_6d, matrix)
+
+
+@documented(_rep.special_procrustes)
+def special_procrustes(matrix: ArrayLike) -> NDArray[Any]:
+    return _B(_rep.special_procrustes, matrix)
+
+
+@documented(_rep.symmetric_matrix_to_quaternion)
+def symmetric_matrix_to_quaternion(a: ArrayLike, *, scalar_first: bool = True) -> NDArray[Any]:
+    q = _B(_rep.symmetric_matrix_to_quaternion, a, scalar_first=scalar_first)
+    # Again after the cast back to a 16-bit dtype, where a tiny w may have rounded to 0.
+    return standardize_quaternion(q, scalar_first=scalar_first)
+
+
+@documented(_rep.fit_rotation)
+def fit_rotation(source: ArrayLike, target: ArrayLike, weights: ArrayLike | None = None) -> NDArray[Any]:
+    return _B(_rep.fit_rotation, source, target, weights)
 
 
 def random_quaternions(

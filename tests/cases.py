@@ -8,6 +8,7 @@ implementation, wherever scipy has the operation.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -194,6 +195,8 @@ class Op:
     applies: the cases this op is run on at all (default: all).
     smooth_at: the cases where the op is differentiable, so that gradients must match finite
         differences; elsewhere they must only be finite (default: ``case.differentiable``).
+    to_scalar_last: maps one quaternion argument (see ``quaternion_args``) to its scalar-last form
+        (default: reorder the last axis; the 10D representation permutes its matrix instead).
     """
 
     name: str
@@ -212,6 +215,7 @@ class Op:
     tol_scale: float = 1.0
     applies: Callable[[Case], bool] = lambda case: True
     smooth_at: Callable[[Case], bool] = lambda case: case.differentiable
+    to_scalar_last: Callable[[np.ndarray], np.ndarray] = lambda x: x[..., [1, 2, 3, 0]]
 
     @property
     def id(self) -> str:
@@ -243,6 +247,132 @@ def _matrix(q: np.ndarray) -> tuple[np.ndarray, ...]:
     return (oracle_quaternion_to_matrix(q),)
 
 
+# ---------------------------------------------------------------------------------------------------
+# Representations for network outputs (6D, 9D, 10D) and fitting. Inputs are built from the case
+# quaternion q so that every named case (half-turns, near identity, norms, batch shapes) reaches them:
+# its rotation R(q), scaled by |q| (so the "norms" case spans the dtype's range and "zero" gives the
+# degenerate all-zero input).
+
+
+def _scale(q: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(q, axis=-1)
+
+
+def _d6(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Unnormalised, non-orthogonal columns whose Gram-Schmidt is R(q): (2 c0, c1 + 0.5 c0) * |q|."""
+    r = oracle_quaternion_to_matrix(q)
+    c0, c1 = r[..., :, 0], r[..., :, 1]
+    return (np.concatenate([2.0 * c0, c1 + 0.5 * c0], axis=-1) * _scale(q)[..., None],)
+
+
+def oracle_rotation_6d_to_matrix(d6: np.ndarray) -> np.ndarray:
+    """Gram-Schmidt by numpy's QR (Householder: an independent algorithm), signs fixed so that the
+    diagonal of the triangular factor is positive; the documented fallbacks for degenerate input."""
+    flat, batch = _flat(d6, 1)
+    out = np.zeros((len(flat), 3, 3))
+    for k, row in enumerate(flat):
+        a1, a2 = row[:3], row[3:]
+        if a1 @ a1 < np.finfo(np.float64).tiny:
+            a1 = np.array([1.0, 0.0, 0.0])
+        b1 = a1 / np.linalg.norm(a1)
+        resid = a2 - (b1 @ a2) * b1
+        if resid @ resid <= np.finfo(np.float64).eps ** 2 * (a2 @ a2) + np.finfo(np.float64).tiny:
+            a2 = np.eye(3)[int(np.argmin(np.abs(b1)))]  # argmin: the first on ties
+        qm, rm = np.linalg.qr(np.stack([a1, a2], axis=-1))
+        qm = qm * np.sign(np.diag(rm))
+        out[k] = np.stack([qm[:, 0], qm[:, 1], np.cross(qm[:, 0], qm[:, 1])], axis=-1)
+    return out.reshape((*batch, 3, 3))
+
+
+# Fixed matrices right-multiplying R(q): generic singular values, one with det < 0 (the determinant
+# fix), one of rank 2 (s_3 = 0; still differentiable: the denominators are s_i + s_3 > 0).
+_REFLECTION = np.array([[1.8, 0.3, -0.2], [0.1, 1.1, 0.4], [0.3, -0.2, -0.5]])
+_GENERIC = np.array([[1.5, 0.2], [-0.3, 0.9], [0.4, 0.1]])
+_RANK2 = np.concatenate([_GENERIC, _GENERIC @ [[1.0], [0.2]]], axis=1)  # column 2 = column 0 + 0.2 column 1
+
+
+def _procrustes_inputs(factor: np.ndarray) -> Callable[[np.ndarray], tuple[np.ndarray, ...]]:
+    return lambda q: (_scale(q)[..., None, None] * (oracle_quaternion_to_matrix(q) @ factor),)
+
+
+def oracle_special_procrustes(matrix: np.ndarray) -> np.ndarray:
+    """float64 NumPy SVD with the determinant fixed (scipy's Rotation has no Procrustes of a matrix)."""
+    u, _, vh = np.linalg.svd(matrix)
+    d = np.sign(np.linalg.det(u @ vh))
+    return (u * np.stack([np.ones_like(d), np.ones_like(d), d], axis=-1)[..., None, :]) @ vh
+
+
+_UPPER = [(0, 0), (0, 1), (0, 2), (0, 3), (1, 1), (1, 2), (1, 3), (2, 2), (2, 3), (3, 3)]
+
+
+def _sym4(a: np.ndarray) -> np.ndarray:
+    m = np.zeros((*a.shape[:-1], 4, 4))
+    for k, (i, j) in enumerate(_UPPER):
+        m[..., i, j] = m[..., j, i] = a[..., k]
+    return m
+
+
+def _upper10(m: np.ndarray) -> np.ndarray:
+    return np.stack([m[..., i, j] for i, j in _UPPER], axis=-1)
+
+
+def _a10(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    """|q| L diag(0, 1, 2, 3) L^T with L the (orthogonal) left-multiplication matrix of q/|q|, whose
+    first column is q/|q|: the eigenvector of the smallest eigenvalue is q/|q|, with gap |q|."""
+    w, x, y, z = np.moveaxis(oracle_normalize(q), -1, 0)
+    left = np.stack(
+        [
+            np.stack([w, -x, -y, -z], axis=-1),
+            np.stack([x, w, -z, y], axis=-1),
+            np.stack([y, z, w, -x], axis=-1),
+            np.stack([z, -y, x, w], axis=-1),
+        ],
+        axis=-2,
+    )
+    m = (left * np.array([0.0, 1.0, 2.0, 3.0])) @ np.swapaxes(left, -1, -2)
+    return (_upper10(m * _scale(q)[..., None, None]),)
+
+
+def oracle_symmetric_matrix_to_quaternion(a: np.ndarray) -> np.ndarray:
+    """NumPy's float64 eigh (LAPACK), canonical sign."""
+    return oracle_standardize(np.linalg.eigh(_sym4(a))[1][..., :, 0])
+
+
+def a10_to_scalar_last(a: np.ndarray) -> np.ndarray:
+    """The same matrix with its rows and columns in (x, y, z, w) order."""
+    return _upper10(_sym4(a)[..., [1, 2, 3, 0], :][..., :, [1, 2, 3, 0]])
+
+
+# Points for fit_rotation: 5 generic points, target = |q| R(q) source + noise, positive weights.
+_POINTS = np.random.default_rng(11).normal(size=(5, 3))
+_NOISE = 0.05 * np.random.default_rng(12).normal(size=(5, 3))
+_WEIGHTS = np.array([1.0, 0.5, 2.0, 0.25, 1.5])
+
+
+def _fit_inputs(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    batch = q.shape[:-1]
+    source = np.broadcast_to(_POINTS, (*batch, 5, 3)).copy()
+    target = _scale(q)[..., None, None] * (
+        source @ np.swapaxes(oracle_quaternion_to_matrix(q), -1, -2) + _NOISE
+    )
+    return source, target, np.broadcast_to(_WEIGHTS, (*batch, 5)).copy()
+
+
+def oracle_fit_rotation(
+    source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None
+) -> np.ndarray:
+    """scipy's ``align_vectors(a, b)`` finds R with a ~ R b: here a = target, b = source."""
+    batch = source.shape[:-2]
+    s, t = source.reshape(-1, *source.shape[-2:]), target.reshape(-1, *target.shape[-2:])
+    w = None if weights is None else weights.reshape(-1, weights.shape[-1])
+    out = np.zeros((len(s), 3, 3))
+    for k in range(len(s)):
+        with warnings.catch_warnings():  # scipy warns that the zero input has no unique rotation
+            warnings.simplefilter("ignore")
+            out[k] = Rotation.align_vectors(t[k], s[k], None if w is None else w[k])[0].as_matrix()
+    return out.reshape((*batch, 3, 3))
+
+
 OPS = [
     Op("quaternion_to_matrix", _q, oracle_quaternion_to_matrix, output="matrix"),
     Op(
@@ -263,8 +393,68 @@ OPS = [
     Op("normalize_quaternion", _q, oracle_normalize, unit=True),
     Op("wxyz_to_xyzw", _q, lambda q: q[..., [1, 2, 3, 0]], quaternion_args=(), scalar_first=False),
     Op("xyzw_to_wxyz", _q, lambda q: q[..., [3, 0, 1, 2]], quaternion_args=(), scalar_first=False),
+    Op(
+        "rotation_6d_to_matrix",
+        _d6,
+        oracle_rotation_6d_to_matrix,
+        quaternion_args=(),
+        output="matrix",
+        scalar_first=False,
+    ),
+    Op(
+        "matrix_to_rotation_6d",
+        _matrix,
+        lambda m: np.concatenate([m[..., :, 0], m[..., :, 1]], axis=-1),
+        quaternion_args=(),
+        output="other",
+        scalar_first=False,
+    ),
+    # Three rows: all singular values equal (|q| R: where a library SVD backward divides by zero),
+    # det < 0, and rank 2. Each is smooth, so gradients must match finite differences there too.
+    *(
+        Op(
+            "special_procrustes",
+            _procrustes_inputs(factor),
+            oracle_special_procrustes,
+            quaternion_args=(),
+            output="matrix",
+            scalar_first=False,
+            label=label,
+        )
+        for label, factor in [
+            ("special_procrustes", np.eye(3)),
+            ("special_procrustes-reflection", _REFLECTION),
+            ("special_procrustes-rank2", _RANK2),
+        ]
+    ),
+    Op(
+        "symmetric_matrix_to_quaternion",
+        _a10,
+        oracle_symmetric_matrix_to_quaternion,
+        canonical=True,
+        unit=True,
+        up_to_sign=True,
+        to_scalar_last=a10_to_scalar_last,
+    ),
+    Op(
+        "fit_rotation",
+        _fit_inputs,
+        oracle_fit_rotation,
+        quaternion_args=(),
+        output="matrix",
+        scalar_first=False,
+    ),
+    Op(
+        "fit_rotation",
+        lambda q: _fit_inputs(q)[:2],
+        oracle_fit_rotation,
+        quaternion_args=(),
+        output="matrix",
+        scalar_first=False,
+        label="fit_rotation-unweighted",
+    ),
 ]
-OPS_BY_NAME = {op.name: op for op in OPS}
+OPS_BY_NAME = {op.id: op for op in OPS}
 
 # Public names that are not rows of the table, with the test that covers each.
 NOT_IN_TABLE = {"random_quaternions": "tests/test_random.py"}

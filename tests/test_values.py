@@ -78,7 +78,7 @@ def test_output_quaternion_is_canonical_and_unit(op: Op, backend: Backend, dtype
 @only(op=lambda op: op.scalar_first)
 def test_scalar_last_is_the_reordered_scalar_first(op: Op, backend: Backend, dtype: str, case: Case) -> None:
     inputs = op.inputs(case.quaternions(dtype))
-    last = [x[..., WXYZ_TO_XYZW] if i in op.quaternion_args else x for i, x in enumerate(inputs)]
+    last = [op.to_scalar_last(x) if i in op.quaternion_args else x for i, x in enumerate(inputs)]
     first = backend.to_numpy(op(backend.module, *(backend.array(x, dtype) for x in inputs)))
     out = backend.to_numpy(op(backend.module, *(backend.array(x, dtype) for x in last), scalar_first=False))
     if op.output == "quaternion":

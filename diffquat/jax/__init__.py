@@ -12,14 +12,21 @@ from jax import Array
 from jax.typing import ArrayLike
 
 from .. import _core
+from .. import _representations as _rep
 from .._backend import Backend, documented, shape_tuple
+from ._custom import custom_derivative
 
 __all__ = [
+    "fit_rotation",
     "matrix_to_quaternion",
+    "matrix_to_rotation_6d",
     "normalize_quaternion",
     "quaternion_to_matrix",
     "random_quaternions",
+    "rotation_6d_to_matrix",
+    "special_procrustes",
     "standardize_quaternion",
+    "symmetric_matrix_to_quaternion",
     "wxyz_to_xyzw",
     "xyzw_to_wxyz",
 ]
@@ -66,6 +73,54 @@ def wxyz_to_xyzw(q: ArrayLike) -> Array:
 @documented(_core.xyzw_to_wxyz)
 def xyzw_to_wxyz(q: ArrayLike) -> Array:
     return _B(_core.xyzw_to_wxyz, q)
+
+
+def _compiled(core_fn: Any, *static: str) -> Any:
+    """``core_fn`` compiled as one XLA computation: run eagerly, jax would compile each of its many
+    small operations separately for every new shape (seconds per call); under an outer ``jit`` this
+    inlines. ``xp`` and the keyword options are static."""
+    return jax.jit(core_fn, static_argnums=0, static_argnames=static)
+
+
+# The SVD and eigh maps with their closed-form derivatives (see diffquat._representations).
+_special_procrustes = _compiled(
+    custom_derivative(_rep.special_procrustes, _rep.procrustes_tangent, _rep.procrustes_cotangent)
+)
+_smallest_eigenvector = custom_derivative(
+    _rep.smallest_eigenvector, _rep.eigenvector_tangent, _rep.eigenvector_cotangent
+)
+_rotation_6d_to_matrix = _compiled(_rep.rotation_6d_to_matrix)
+_symmetric_matrix_to_quaternion = _compiled(
+    _rep.symmetric_matrix_to_quaternion, "scalar_first", "eigenvector"
+)
+_fit_rotation = _compiled(_rep.fit_rotation, "procrustes")
+
+
+@documented(_rep.rotation_6d_to_matrix)
+def rotation_6d_to_matrix(d6: ArrayLike) -> Array:
+    return _B(_rotation_6d_to_matrix, d6)
+
+
+@documented(_rep.matrix_to_rotation_6d)
+def matrix_to_rotation_6d(matrix: ArrayLike) -> Array:
+    return _B(_rep.matrix_to_rotation_6d, matrix)
+
+
+@documented(_rep.special_procrustes)
+def special_procrustes(matrix: ArrayLike) -> Array:
+    return _B(_special_procrustes, matrix)
+
+
+@documented(_rep.symmetric_matrix_to_quaternion)
+def symmetric_matrix_to_quaternion(a: ArrayLike, *, scalar_first: bool = True) -> Array:
+    q = _B(_symmetric_matrix_to_quaternion, a, scalar_first=scalar_first, eigenvector=_smallest_eigenvector)
+    # Again after the cast back to a 16-bit dtype, where a tiny w may have rounded to 0.
+    return standardize_quaternion(q, scalar_first=scalar_first)
+
+
+@documented(_rep.fit_rotation)
+def fit_rotation(source: ArrayLike, target: ArrayLike, weights: ArrayLike | None = None) -> Array:
+    return _B(_fit_rotation, source, target, weights, procrustes=_special_procrustes)
 
 
 def random_quaternions(

@@ -9,15 +9,22 @@ import torch
 from torch import Tensor
 
 from .. import _core
+from .. import _representations as _rep
 from .._backend import Backend, documented, shape_tuple
 from . import _fused
+from ._custom import custom_derivative
 
 __all__ = [
+    "fit_rotation",
     "matrix_to_quaternion",
+    "matrix_to_rotation_6d",
     "normalize_quaternion",
     "quaternion_to_matrix",
     "random_quaternions",
+    "rotation_6d_to_matrix",
+    "special_procrustes",
     "standardize_quaternion",
+    "symmetric_matrix_to_quaternion",
     "wxyz_to_xyzw",
     "xyzw_to_wxyz",
 ]
@@ -68,6 +75,44 @@ def wxyz_to_xyzw(q: Tensor) -> Tensor:
 @documented(_core.xyzw_to_wxyz)
 def xyzw_to_wxyz(q: Tensor) -> Tensor:
     return _B(_core.xyzw_to_wxyz, q)
+
+
+# The SVD and eigh maps with their closed-form derivatives (see diffquat._representations).
+_special_procrustes = custom_derivative(
+    _rep.special_procrustes, _rep.procrustes_tangent, _rep.procrustes_cotangent
+)
+_smallest_eigenvector = custom_derivative(
+    _rep.smallest_eigenvector, _rep.eigenvector_tangent, _rep.eigenvector_cotangent
+)
+
+
+@documented(_rep.rotation_6d_to_matrix)
+def rotation_6d_to_matrix(d6: Tensor) -> Tensor:
+    return _B(_rep.rotation_6d_to_matrix, d6)
+
+
+@documented(_rep.matrix_to_rotation_6d)
+def matrix_to_rotation_6d(matrix: Tensor) -> Tensor:
+    return _B(_rep.matrix_to_rotation_6d, matrix)
+
+
+@documented(_rep.special_procrustes)
+def special_procrustes(matrix: Tensor) -> Tensor:
+    return _B(_special_procrustes, matrix)
+
+
+@documented(_rep.symmetric_matrix_to_quaternion)
+def symmetric_matrix_to_quaternion(a: Tensor, *, scalar_first: bool = True) -> Tensor:
+    q = _B(
+        _rep.symmetric_matrix_to_quaternion, a, scalar_first=scalar_first, eigenvector=_smallest_eigenvector
+    )
+    # Again after the cast back to a 16-bit dtype, where a tiny w may have rounded to 0.
+    return standardize_quaternion(q, scalar_first=scalar_first)
+
+
+@documented(_rep.fit_rotation)
+def fit_rotation(source: Tensor, target: Tensor, weights: Tensor | None = None) -> Tensor:
+    return _B(_rep.fit_rotation, source, target, weights, procrustes=_special_procrustes)
 
 
 def random_quaternions(
