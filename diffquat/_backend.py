@@ -11,6 +11,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
+from . import _core
 from ._core import SHAPES
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -101,4 +102,13 @@ class Backend:
         out = core_fn(self.xp, *(x if x is None else self.astype(x, compute) for x in checked), **options)
         if isinstance(out, tuple):
             return tuple(self.astype(o, dtype) for o in out)
+        if core_fn.__name__ in _core.CANONICAL:
+            return self.cast_canonical(out, dtype, options.get("scalar_first", True))
         return self.astype(out, dtype)
+
+    def cast_canonical(self, q: Any, dtype: Any, scalar_first: bool) -> Any:
+        """Cast a canonical quaternion to ``dtype``, keeping it canonical: narrowing can round a tiny
+        positive w to 0 (see ``_core.CANONICAL``), so a narrowed result is standardised again."""
+        if dtype.itemsize >= q.dtype.itemsize:
+            return self.astype(q, dtype)
+        return _core.standardize_quaternion(self.xp, self.astype(q, dtype), scalar_first=scalar_first)

@@ -35,6 +35,18 @@ def op(**trailing: tuple[int, ...]) -> Callable[[F], F]:
     return register
 
 
+# Core functions whose result is a quaternion in canonical sign. The backends re-standardise such a
+# result after casting it back to a 16-bit dtype: a w that is tiny but positive in float32 can round
+# to 0 there, and then the sign of x decides.
+CANONICAL: set[str] = set()
+
+
+def canonical(fn: F) -> F:
+    """Mark a core function whose result is a quaternion in canonical sign (see ``CANONICAL``)."""
+    CANONICAL.add(fn.__name__)
+    return fn
+
+
 def split_quaternion(q: Any, scalar_first: bool) -> tuple[Any, Any, Any, Any]:
     """Components (w, x, y, z) of ``q`` in either storage order."""
     if scalar_first:
@@ -98,6 +110,7 @@ def quaternion_to_matrix(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
     )  # fmt: skip
 
 
+@canonical
 @op(matrix=(3, 3))
 def matrix_to_quaternion(xp: Any, matrix: Any, *, scalar_first: bool = True) -> Any:
     """Unit quaternion of a rotation matrix, in canonical sign.
@@ -196,6 +209,7 @@ def xyzw_to_wxyz(xp: Any, q: Any) -> Any:
     return xp.stack([q[..., 3], q[..., 0], q[..., 1], q[..., 2]], axis=-1)
 
 
+@canonical
 @op(uniform=(3,))
 def quaternions_from_uniform(xp: Any, uniform: Any, *, scalar_first: bool = True) -> Any:
     """Shoemake's map from three uniform [0, 1) numbers to a uniformly distributed unit quaternion, in

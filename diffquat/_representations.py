@@ -14,7 +14,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from ._core import join_quaternion, op, split_quaternion, stack_matrix, standardize_quaternion
+from ._core import canonical, join_quaternion, op, split_quaternion, stack_matrix, standardize_quaternion
 
 # ---------------------------------------------------------------------------------------------------
 # 6D (Zhou et al., CVPR 2019)
@@ -251,6 +251,7 @@ def smallest_eigenvector(xp: Any, a: Any) -> Any:
     return vectors[..., :, 0]
 
 
+@canonical
 @op(a=(10,))
 def symmetric_matrix_to_quaternion(
     xp: Any,

@@ -93,9 +93,7 @@ def special_procrustes(matrix: ArrayLike) -> NDArray[Any]:
 
 @documented(_rep.symmetric_matrix_to_quaternion)
 def symmetric_matrix_to_quaternion(a: ArrayLike, *, scalar_first: bool = True) -> NDArray[Any]:
-    q = _B(_rep.symmetric_matrix_to_quaternion, a, scalar_first=scalar_first)
-    # Again after the cast back to a 16-bit dtype, where a tiny w may have rounded to 0.
-    return standardize_quaternion(q, scalar_first=scalar_first)
+    return _B(_rep.symmetric_matrix_to_quaternion, a, scalar_first=scalar_first)
 
 
 @documented(_rep.fit_rotation)
@@ -120,4 +118,4 @@ def random_quaternions(
     """
     uniform = np.random.default_rng(rng).random((*shape_tuple(shape), 3))
     q = _B(_core.quaternions_from_uniform, uniform, scalar_first=scalar_first)
-    return np.asarray(q).astype(dtype)
+    return _B.cast_canonical(np.asarray(q), np.dtype(dtype), scalar_first)

@@ -74,7 +74,10 @@ def _tilted_axes(tilts: np.ndarray) -> np.ndarray:
 
 
 def _near_half_turns() -> np.ndarray:
-    axes = _tilted_axes(10.0 ** -np.arange(3, 9))  # 18 axes tilted by 1e-3 ... 1e-8
+    # 36 axes tilted by 1e-3 ... 1e-8, and their negatives: then w is tiny and positive while x, y or z
+    # is negative, the combination where a rounding of w to 0 would break the canonical sign.
+    axes = _tilted_axes(10.0 ** -np.arange(3, 9))
+    axes = np.concatenate([axes, -axes])
     angles = np.pi - 10.0 ** -np.arange(1, 9)  # pi - 1e-1 ... pi - 1e-8
     return axis_angle_quaternions(np.repeat(axes, len(angles), axis=0), np.tile(angles, len(axes)))
 

@@ -113,9 +113,9 @@ def special_procrustes(matrix: ArrayLike) -> Array:
 
 @documented(_rep.symmetric_matrix_to_quaternion)
 def symmetric_matrix_to_quaternion(a: ArrayLike, *, scalar_first: bool = True) -> Array:
-    q = _B(_symmetric_matrix_to_quaternion, a, scalar_first=scalar_first, eigenvector=_smallest_eigenvector)
-    # Again after the cast back to a 16-bit dtype, where a tiny w may have rounded to 0.
-    return standardize_quaternion(q, scalar_first=scalar_first)
+    return _B(
+        _symmetric_matrix_to_quaternion, a, scalar_first=scalar_first, eigenvector=_smallest_eigenvector
+    )
 
 
 @documented(_rep.fit_rotation)
@@ -140,4 +140,5 @@ def random_quaternions(
     """
     dtype = jnp.dtype(jax.dtypes.canonicalize_dtype(jnp.float64) if dtype is None else dtype)
     uniform = jax.random.uniform(key, (*shape_tuple(shape), 3), dtype=_B.compute_dtype(dtype))
-    return _B(_core.quaternions_from_uniform, uniform, scalar_first=scalar_first).astype(dtype)
+    q = _B(_core.quaternions_from_uniform, uniform, scalar_first=scalar_first)
+    return _B.cast_canonical(q, dtype, scalar_first)

@@ -103,11 +103,9 @@ def special_procrustes(matrix: Tensor) -> Tensor:
 
 @documented(_rep.symmetric_matrix_to_quaternion)
 def symmetric_matrix_to_quaternion(a: Tensor, *, scalar_first: bool = True) -> Tensor:
-    q = _B(
+    return _B(
         _rep.symmetric_matrix_to_quaternion, a, scalar_first=scalar_first, eigenvector=_smallest_eigenvector
     )
-    # Again after the cast back to a 16-bit dtype, where a tiny w may have rounded to 0.
-    return standardize_quaternion(q, scalar_first=scalar_first)
 
 
 @documented(_rep.fit_rotation)
@@ -136,4 +134,5 @@ def random_quaternions(
     uniform = torch.rand(
         (*shape_tuple(shape), 3), generator=generator, dtype=_B.compute_dtype(dtype), device=device
     )
-    return _B(_core.quaternions_from_uniform, uniform, scalar_first=scalar_first).to(dtype)
+    q = _B(_core.quaternions_from_uniform, uniform, scalar_first=scalar_first)
+    return _B.cast_canonical(q, dtype, scalar_first)
