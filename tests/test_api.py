@@ -55,7 +55,10 @@ def test_every_public_function_is_documented_with_its_shapes(backend: Backend) -
 
 
 def wrong_shapes(trailing: tuple[int, ...]) -> list[tuple[int, ...]]:
-    """Shapes a caller gets wrong: the last dimension off by one, and too few dimensions."""
+    """Shapes a caller gets wrong: the last dimension off by one, and too few dimensions. An argument
+    with no trailing dimensions (e.g. slerp's ``t``) accepts every shape: there is nothing to get wrong."""
+    if not trailing:
+        return []
     return [(2, *trailing[:-1], trailing[-1] + 1), trailing[1:] or (trailing[0] + 1,)]
 
 
