@@ -112,9 +112,12 @@ def test_gradient_matches_finite_differences(op: Op, backend: Backend, dtype: st
         assert np.all(np.abs(j_ad - j_fd) <= tol), float(np.max(np.abs(j_ad - j_fd) / tol))
 
 
-def small(x: np.ndarray) -> np.ndarray:
-    """At most 24 elements of a case, to keep the dense numerical Jacobians of gradcheck small."""
-    return x if x.ndim <= 2 and x.shape[0] <= 24 else x.reshape(-1, *x.shape[-1:])[::4][:24]
+def small(x: np.ndarray, batch: Batch) -> np.ndarray:
+    """At most 24 elements of a case, to keep the dense numerical Jacobians of gradcheck small. Every
+    input of an op is cut the same way along its batch dimensions (``batch``), whatever its trailing
+    shape (quaternions, matrices, or none for slerp's ``t``)."""
+    flat = x.reshape(-1, *x.shape[len(batch) :])
+    return flat if len(batch) == 1 and flat.shape[0] <= 24 else flat[::4][:24]
 
 
 @smooth
@@ -122,8 +125,8 @@ def small(x: np.ndarray) -> np.ndarray:
 @torch_only
 @gradients
 def test_torch_gradcheck_and_gradgradcheck(op: Op, backend: Backend, dtype: str, case: Case) -> None:
-    fn, xs, _ = grad_setup(op, backend, case)
-    ts = tuple(torch.tensor(small(x), requires_grad=True) for x in xs)
+    fn, xs, batch = grad_setup(op, backend, case)
+    ts = tuple(torch.tensor(small(x, batch), requires_grad=True) for x in xs)
     assert torch.autograd.gradcheck(fn, ts, eps=1e-6, atol=1e-6, rtol=1e-5)
     assert torch.autograd.gradgradcheck(fn, ts, eps=1e-6, atol=1e-5, rtol=1e-4)
 
@@ -133,8 +136,8 @@ def test_torch_gradcheck_and_gradgradcheck(op: Op, backend: Backend, dtype: str,
 @jax_only
 @gradients
 def test_jax_check_grads(op: Op, backend: Backend, dtype: str, case: Case) -> None:
-    fn, xs, _ = grad_setup(op, backend, case)
-    check_grads(fn, tuple(jnp.asarray(small(x)) for x in xs), order=2, modes=("fwd", "rev"), eps=1e-6)
+    fn, xs, batch = grad_setup(op, backend, case)
+    check_grads(fn, tuple(jnp.asarray(small(x, batch)) for x in xs), order=2, modes=("fwd", "rev"), eps=1e-6)
 
 
 @edge_cases
