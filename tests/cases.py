@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import Rotation, Slerp
 
 DTYPES = ("float64", "float32", "float16", "bfloat16")
 
@@ -94,6 +94,17 @@ def _norms(dtype: str) -> np.ndarray:
     return (uniform_quaternions(8, seed=3)[None, :, :] * scales[:, None, None]).reshape(-1, 4)
 
 
+def _gimbal_locks() -> np.ndarray:
+    """The 24 quaternions with entries in {0, +-1/2, +-1}: the identity, the half-turns about x, y, z and
+    the third-turns about the cube's diagonals, each with both signs. Every Euler convention has exact
+    gimbal locks among them (proper sequences: the identity and the half-turns; Tait-Bryan sequences:
+    the third-turns that take the third axis onto the first), the others are far from any lock, and the
+    entries are exact in every dtype, so the lock is exact on every backend."""
+    units = np.vstack([np.eye(4), -np.eye(4)])
+    halves = np.array([(a, b, c, d) for a in (-1, 1) for b in (-1, 1) for c in (-1, 1) for d in (-1, 1)])
+    return np.vstack([units, 0.5 * halves])
+
+
 @dataclass(frozen=True)
 class Case:
     name: str
@@ -116,6 +127,7 @@ CASES = [
     Case("near_identity", _fixed(_near_identity())),
     Case("norms", _norms),
     Case("sign_flip", _fixed(np.stack([uniform_quaternions(8, 1), -uniform_quaternions(8, 1)]))),
+    Case("gimbal_lock", _fixed(_gimbal_locks())),
     Case("zero", _fixed(np.zeros((1, 4))), differentiable=False),
     Case("batch_scalar", _fixed(uniform_quaternions(1, seed=4)[0])),
     Case("batch_1", _fixed(uniform_quaternions(1, seed=5))),
@@ -132,6 +144,7 @@ EDGE_CASES = ("random", "identity", "half_turns", "near_half_turns", "near_ident
 
 
 def _flat(x: np.ndarray, trailing: int) -> tuple[np.ndarray, tuple[int, ...]]:
+    x = np.array(x)  # a writable copy: scipy's Cython refuses read-only views of jax arrays
     batch = x.shape[: x.ndim - trailing]
     return x.reshape(-1, *x.shape[x.ndim - trailing :]), batch
 
@@ -200,6 +213,9 @@ class Op:
         differences; elsewhere they must only be finite (default: ``case.differentiable``).
     to_scalar_last: maps one quaternion argument (see ``quaternion_args``) to its scalar-last form
         (default: reorder the last axis; the 10D representation permutes its matrix instead).
+    relative: errors are measured relative to the largest entry of each expected output element (for
+        ops whose output scales with the norm of the input, e.g. ``quaternion_invert`` at 1e20).
+    periodic: the outputs are angles, compared modulo 2 pi (an angle of pi may come back as -pi).
     """
 
     name: str
@@ -219,6 +235,8 @@ class Op:
     applies: Callable[[Case], bool] = lambda case: True
     smooth_at: Callable[[Case], bool] = lambda case: case.differentiable
     to_scalar_last: Callable[[np.ndarray], np.ndarray] = lambda x: x[..., [1, 2, 3, 0]]
+    relative: bool = False
+    periodic: bool = False
 
     @property
     def id(self) -> str:
@@ -457,6 +475,299 @@ OPS = [
         label="fit_rotation-unweighted",
     ),
 ]
+
+# ---------------------------------------------------------------------------------------------------
+# Rotation vector, Euler angles, quaternion algebra, interpolation and distances.
+
+
+def _rotation(q: np.ndarray) -> tuple[Rotation, tuple[int, ...]]:
+    """scipy rotations of float64 quaternions (w, x, y, z) of any shape, the zero quaternion being the
+    identity (diffquat's documented meaning); with the batch shape to restore."""
+    flat, batch = _flat(q, 1)
+    zero = np.all(flat == 0, axis=-1)
+    safe = np.where(zero[:, None], [1.0, 0.0, 0.0, 0.0], flat)
+    return Rotation.from_quat(safe if len(flat) else [1.0, 0, 0, 0], scalar_first=True), batch
+
+
+def _batched(fn: Callable[[Rotation], np.ndarray], q: np.ndarray, trailing: tuple[int, ...]) -> np.ndarray:
+    rot, batch = _rotation(q)
+    n = int(np.prod(batch))
+    out = fn(rot) if n else np.zeros((0, *trailing))
+    return np.asarray(out).reshape((*batch, *trailing))
+
+
+def _companion(q: np.ndarray, seed: int) -> np.ndarray:
+    """Uniform unit quaternions (scipy's sampler) with the batch shape of ``q``."""
+    batch = q.shape[:-1]
+    n = int(np.prod(batch))
+    return uniform_quaternions(n, seed).reshape(q.shape) if n else np.zeros(q.shape)
+
+
+def _rotvec(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    return (_batched(lambda r: r.as_rotvec(), oracle_standardize(q), (3,)),)
+
+
+def oracle_quaternion_to_axis_angle(q: np.ndarray) -> np.ndarray:
+    # scipy flips where w < 0; diffquat's documented rule is the canonical sign (which also decides
+    # w = 0, where scipy keeps the input's sign): the vector of the canonical quaternion.
+    return _rotvec(q)[0]
+
+
+def oracle_axis_angle_to_quaternion(v: np.ndarray) -> np.ndarray:
+    flat, batch = _flat(v, 1)
+    out = Rotation.from_rotvec(flat).as_quat(scalar_first=True) if len(flat) else np.zeros((0, 4))
+    return out.reshape((*batch, 4))
+
+
+def oracle_axis_angle_to_matrix(v: np.ndarray) -> np.ndarray:
+    return oracle_quaternion_to_matrix(oracle_axis_angle_to_quaternion(v))
+
+
+def oracle_matrix_to_axis_angle(matrix: np.ndarray) -> np.ndarray:
+    return _rotvec(oracle_matrix_to_quaternion(matrix))[0]
+
+
+def _euler(convention: str) -> Callable[[np.ndarray], tuple[np.ndarray, ...]]:
+    def angles(q: np.ndarray) -> tuple[np.ndarray, ...]:
+        return (oracle_quaternion_to_euler(q, convention),)
+
+    return angles
+
+
+def oracle_quaternion_to_euler(q: np.ndarray, convention: str) -> np.ndarray:
+    return _batched(lambda r: r.as_euler(convention, suppress_warnings=True), q, (3,))
+
+
+def oracle_euler_to_quaternion(angles: np.ndarray, convention: str) -> np.ndarray:
+    flat, batch = _flat(angles, 1)
+    out = Rotation.from_euler(convention, flat).as_quat(scalar_first=True) if len(flat) else np.zeros((0, 4))
+    return out.reshape((*batch, 4))
+
+
+def _norm(q: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def oracle_multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    # scipy composes unit quaternions (R(p) * R(q), sign as the Hamilton product); the norms multiply.
+    rp, rq = _rotation(p)[0], _rotation(q)[0]
+    unit = (rp * rq).as_quat(scalar_first=True) if p.size else np.zeros((0, 4))
+    return unit.reshape(p.shape) * _norm(p) * _norm(q)
+
+
+def oracle_conjugate(q: np.ndarray) -> np.ndarray:
+    return _batched(lambda r: r.inv().as_quat(scalar_first=True), q, (4,)) * _norm(q)
+
+
+def oracle_invert(q: np.ndarray) -> np.ndarray:
+    norm = _norm(q)  # documented: zero -> zero
+    return _batched(lambda r: r.inv().as_quat(scalar_first=True), q, (4,)) / np.where(norm > 0, norm, np.inf)
+
+
+def _vectors(q: np.ndarray) -> np.ndarray:
+    return np.random.default_rng(12).normal(size=(*q.shape[:-1], 3))
+
+
+def oracle_apply(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    rot = _rotation(q)[0]
+    return rot.apply(np.array(v).reshape(-1, 3)).reshape(v.shape) if v.size else np.zeros(v.shape)
+
+
+def _pair(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(p, p q): the rotation between the two is the case's own quaternion, so the identity case gives
+    q = +-p, the half-turns antipodal rotations, and so on."""
+    p = _companion(q, seed=11)
+    return p, hamilton(p, q)
+
+
+def hamilton(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hamilton product, written out (i*i = -1), float64."""
+    pw, px, py, pz = np.moveaxis(p, -1, 0)
+    qw, qx, qy, qz = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            pw * qw - px * qx - py * qy - pz * qz,
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw,
+        ],
+        axis=-1,
+    )
+
+
+def _slerp_inputs(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    t = np.random.default_rng(13).uniform(0.1, 0.9, size=q.shape[:-1])
+    return (*_pair(q), t)
+
+
+def oracle_slerp(p: np.ndarray, q: np.ndarray, t: np.ndarray) -> np.ndarray:
+    rp, rq = _rotation(p)[0], _rotation(q)[0]
+    n = int(np.prod(t.shape))
+    out = [Slerp([0.0, 1.0], Rotation.concatenate([rp[i], rq[i]]))(t.reshape(-1)[i]) for i in range(n)]
+    quats = np.array([r.as_quat(scalar_first=True) for r in out]).reshape((*t.shape, 4))
+    return quats
+
+
+def oracle_quaternion_distance(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    rp, rq = _rotation(p)[0], _rotation(q)[0]
+    return (rp.inv() * rq).magnitude().reshape(p.shape[:-1]) if p.size else np.zeros(p.shape[:-1])
+
+
+def oracle_matrix_distance(m1: np.ndarray, m2: np.ndarray) -> np.ndarray:
+    return oracle_quaternion_distance(oracle_matrix_to_quaternion(m1), oracle_matrix_to_quaternion(m2))
+
+
+def _except(*names: str) -> Callable[[Case], bool]:
+    return lambda case: case.differentiable and case.name not in names
+
+
+# The rotation vector jumps to its antipode where the angle crosses pi (w = 0), so log-type maps are
+# differentiable everywhere except there: finite differences must agree everywhere else, and the
+# gradient must be finite at the jump. Near half-turns (w down to 5e-9) the finite-difference step
+# (1e-6) itself crosses the jump, so those are checked for finiteness only too; gimbal_lock holds exact
+# half-turns. The same holds for slerp between antipodal rotations (two shortest arcs).
+AT_HALF_TURNS = ("half_turns", "near_half_turns", "gimbal_lock")
+# A distance has a kink where it is 0 (like a norm) and where it is pi: cases whose two rotations are
+# equal, antipodal or within the finite-difference step of either are checked for finiteness only.
+AT_DISTANCE_KINKS = ("identity", "near_identity", *AT_HALF_TURNS)
+# Euler angles are ill-conditioned near a gimbal lock: a rotation 1e-8 away from one moves the first
+# and third angles by O(1), so comparing them with scipy across dtypes is meaningless there. Angle
+# outputs are checked on generic rotations and at exact locks (gimbal_lock), whose round trip through
+# every convention is tested separately (tests/test_geometry.py) on every case.
+EULER_ILL_CONDITIONED = ("half_turns", "near_half_turns", "near_identity")
+# One row per function, together covering intrinsic and extrinsic, Tait-Bryan and proper sequences
+# (all 24 conventions are compared with scipy in tests/test_geometry.py).
+EULER_ROWS = {
+    "euler_angles_to_matrix": "XYZ",
+    "matrix_to_euler_angles": "ZXZ",
+    "euler_angles_to_quaternion": "zyx",
+    "quaternion_to_euler_angles": "xzx",
+}
+
+
+def _euler_ops() -> list[Op]:
+    def smooth_at(conv: str) -> Callable[[Case], bool]:
+        # The angles jump at a lock; for proper sequences (e.g. ZXZ) the identity is one.
+        return _except("gimbal_lock", "identity") if conv[0] == conv[2] else _except("gimbal_lock")
+
+    def well_conditioned(case: Case) -> bool:
+        return case.name not in EULER_ILL_CONDITIONED
+
+    def row(name: str, inputs: Callable[..., Any], oracle: Callable[..., np.ndarray], **kw: Any) -> Op:
+        conv = EULER_ROWS[name]
+        return Op(name, inputs, oracle, kwargs={"convention": conv}, label=f"{name}[{conv}]", **kw)
+
+    to_matrix, from_matrix = EULER_ROWS["euler_angles_to_matrix"], EULER_ROWS["matrix_to_euler_angles"]
+    to_q, from_q = EULER_ROWS["euler_angles_to_quaternion"], EULER_ROWS["quaternion_to_euler_angles"]
+    return [
+        row(
+            "euler_angles_to_matrix",
+            _euler(to_matrix),
+            lambda a: oracle_quaternion_to_matrix(oracle_euler_to_quaternion(a, to_matrix)),
+            quaternion_args=(),
+            output="matrix",
+            scalar_first=False,
+        ),
+        row(
+            "matrix_to_euler_angles",
+            _matrix,
+            lambda m: oracle_quaternion_to_euler(oracle_matrix_to_quaternion(m), from_matrix),
+            quaternion_args=(),
+            output="other",
+            scalar_first=False,
+            applies=well_conditioned,
+            smooth_at=smooth_at(from_matrix),
+            periodic=True,
+        ),
+        row(
+            "euler_angles_to_quaternion",
+            _euler(to_q),
+            lambda a: oracle_euler_to_quaternion(a, to_q),
+            quaternion_args=(),
+            unit=True,
+        ),
+        row(
+            "quaternion_to_euler_angles",
+            _q,
+            lambda q: oracle_quaternion_to_euler(q, from_q),
+            output="other",
+            applies=well_conditioned,
+            smooth_at=smooth_at(from_q),
+            periodic=True,
+        ),
+    ]
+
+
+OPS += [
+    Op("axis_angle_to_quaternion", _rotvec, oracle_axis_angle_to_quaternion, quaternion_args=(), unit=True),
+    Op(
+        "quaternion_to_axis_angle",
+        _q,
+        oracle_quaternion_to_axis_angle,
+        output="other",
+        smooth_at=_except(*AT_HALF_TURNS),
+    ),
+    Op(
+        "axis_angle_to_matrix",
+        _rotvec,
+        oracle_axis_angle_to_matrix,
+        quaternion_args=(),
+        output="matrix",
+        scalar_first=False,
+    ),
+    Op(
+        "matrix_to_axis_angle",
+        _matrix,
+        oracle_matrix_to_axis_angle,
+        quaternion_args=(),
+        output="other",
+        scalar_first=False,
+        # At exact half-turns rounding legitimately decides the canonical sign, so v or -v (the same
+        # rotation there); elsewhere -v is another rotation, which the round trip R -> v -> R rules out.
+        up_to_sign=True,
+        smooth_at=_except(*AT_HALF_TURNS),
+    ),
+    *_euler_ops(),
+    Op(
+        "quaternion_multiply",
+        lambda q: (_companion(q, seed=11), q),
+        oracle_multiply,
+        quaternion_args=(0, 1),
+        relative=True,
+    ),
+    Op("quaternion_conjugate", _q, oracle_conjugate, relative=True),
+    Op("quaternion_invert", _q, oracle_invert, relative=True),
+    Op("quaternion_apply", lambda q: (q, _vectors(q)), oracle_apply, output="other"),
+    Op(
+        "quaternion_slerp",
+        _slerp_inputs,
+        oracle_slerp,
+        quaternion_args=(0, 1),
+        unit=True,
+        up_to_sign=True,  # scipy's Slerp returns the rotation, not a particular sign of its quaternion
+        # Between rotations a half-turn apart there are two shortest arcs and rounding picks one: that
+        # is checked on its own (tests/test_geometry.py), with its gradient's finiteness.
+        applies=lambda case: case.name not in AT_HALF_TURNS,
+    ),
+    Op(
+        "quaternion_geodesic_distance",
+        _pair,
+        oracle_quaternion_distance,
+        quaternion_args=(0, 1),
+        output="other",
+        smooth_at=_except(*AT_DISTANCE_KINKS),
+    ),
+    Op(
+        "matrix_geodesic_distance",
+        lambda q: tuple(oracle_quaternion_to_matrix(x) for x in _pair(q)),
+        oracle_matrix_distance,
+        quaternion_args=(),
+        output="other",
+        scalar_first=False,
+        smooth_at=_except(*AT_DISTANCE_KINKS),
+    ),
+]
+
 OPS_BY_NAME = {op.id: op for op in OPS}
 
 # Public names that are not rows of the table, with the test that covers each.
@@ -472,16 +783,19 @@ def only(
     backend: Callable[[str], bool] | None = None,
     dtype: Callable[[str], bool] | None = None,
     case: Callable[[Case], bool] | None = None,
+    pair: Callable[[Op, Case], bool] | None = None,
 ) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
-    """Decorator: run a table-driven test only on the ops, backends, dtypes and cases that pass.
-    Stacked decorators combine: every filter must pass."""
-    new = {k: v for k, v in {"op": op, "backend": backend, "dtype": dtype, "case": case}.items() if v}
+    """Decorator: run a table-driven test only on the ops, backends, dtypes and cases that pass, and
+    (``pair``) only on the (op, case) combinations that pass. Stacked decorators combine: every filter
+    must pass."""
+    axes = {"op": op, "backend": backend, "dtype": dtype, "case": case, "pair": pair}
+    new = {k: v for k, v in axes.items() if v}
 
     def mark(fn: Callable[..., Any]) -> Callable[..., Any]:
         filters = dict(getattr(fn, "diffquat_filters", {}))
         for axis, keep in new.items():
             before = filters.get(axis)
-            filters[axis] = keep if before is None else (lambda v, a=before, b=keep: a(v) and b(v))
+            filters[axis] = keep if before is None else (lambda *v, a=before, b=keep: a(*v) and b(*v))
         fn.diffquat_filters = filters  # type: ignore[attr-defined]
         return fn
 
@@ -492,3 +806,6 @@ gradients = only(backend=lambda b: b in ("torch", "jax"), dtype=lambda d: d == G
 torch_only = only(backend=lambda b: b == "torch")
 jax_only = only(backend=lambda b: b == "jax")
 edge_cases = only(case=lambda c: c.name in EDGE_CASES)
+# Where the op is differentiable (e.g. not where a rotation vector jumps at pi): for the numerical
+# derivative checks (gradcheck, check_grads), which cannot pass across a jump.
+smooth = only(pair=lambda op, case: op.smooth_at(case))

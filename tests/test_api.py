@@ -64,7 +64,10 @@ def test_every_public_function_is_documented_with_its_shapes(backend: Backend) -
 
 def wrong_shapes(trailing: tuple[int, ...]) -> list[tuple[int, ...]]:
     """Shapes a caller gets wrong: the last dimension off by one (unless it may be any size), and too
-    few dimensions."""
+    few dimensions. An argument with no trailing dimensions (e.g. slerp's ``t``) accepts every shape:
+    there is nothing to get wrong."""
+    if not trailing:
+        return []
     size = concrete(trailing)
     too_few = size[1:] or ((size[0] + 1,) if trailing[0] != -1 else ())
     return ([(2, *size[:-1], size[-1] + 1)] if trailing[-1] != -1 else []) + [too_few]
