@@ -11,13 +11,23 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
+from . import _core
 from ._core import SHAPES
 
 F = TypeVar("F", bound=Callable[..., Any])
 
 
 def format_shape(trailing: tuple[int, ...]) -> str:
-    return "(..., " + ", ".join(str(n) for n in trailing) + ")"
+    """``(..., 3, 3)``; a -1 in the registry (any size, e.g. a number of points) prints as ``N``."""
+    return "(..., " + ", ".join("N" if n == -1 else str(n) for n in trailing) + ")"
+
+
+def matches(shape: tuple[int, ...], trailing: tuple[int, ...]) -> bool:
+    """Whether ``shape`` ends in ``trailing`` (where -1 matches any size)."""
+    if len(shape) < len(trailing):
+        return False
+    tail = shape[len(shape) - len(trailing) :]
+    return all(t in (-1, s) for s, t in zip(tail, trailing, strict=True))
 
 
 def shape_tuple(shape: int | tuple[int, ...] | list[int]) -> tuple[int, ...]:
@@ -59,21 +69,26 @@ class Backend:
         return self.float32 if dtype.itemsize < 4 else dtype
 
     def validate(self, fname: str, *arrays: Any) -> list[Any]:
-        """Convert and check every array argument of core function ``fname`` against ``SHAPES``."""
-        checked = []
+        """Convert and check every array argument of core function ``fname`` against ``SHAPES``.
+        An optional array argument passed as ``None`` stays ``None``."""
+        checked: list[Any] = []
         for (argname, trailing), raw in zip(SHAPES[fname].items(), arrays, strict=True):
+            if raw is None:
+                checked.append(None)
+                continue
             x = self.convert(fname, argname, raw)
             if not self.is_floating(x.dtype):
                 raise TypeError(f"{fname}: expected {argname} with a floating-point dtype, got {x.dtype}")
             shape = tuple(x.shape)
-            if len(shape) < len(trailing) or shape[len(shape) - len(trailing) :] != trailing:
+            if not matches(shape, trailing):
                 raise ValueError(
                     f"{fname}: expected {argname} of shape {format_shape(trailing)}, got shape {shape}"
                 )
             checked.append(x)
-        dtypes = {x.dtype for x in checked}
+        dtypes = {x.dtype for x in checked if x is not None}
         if len(dtypes) > 1:
-            names = ", ".join(f"{a}: {x.dtype}" for a, x in zip(SHAPES[fname], checked, strict=True))
+            pairs = zip(SHAPES[fname], checked, strict=True)
+            names = ", ".join(f"{a}: {x.dtype}" for a, x in pairs if x is not None)
             raise TypeError(f"{fname}: expected all arrays to have one dtype, got {names}")
         return checked
 
@@ -84,7 +99,16 @@ class Backend:
         compute = self.compute_dtype(dtype)
         if compute == dtype:
             return core_fn(self.xp, *checked, **options)
-        out = core_fn(self.xp, *(self.astype(x, compute) for x in checked), **options)
+        out = core_fn(self.xp, *(x if x is None else self.astype(x, compute) for x in checked), **options)
         if isinstance(out, tuple):
             return tuple(self.astype(o, dtype) for o in out)
+        if core_fn.__name__ in _core.CANONICAL:
+            return self.cast_canonical(out, dtype, options.get("scalar_first", True))
         return self.astype(out, dtype)
+
+    def cast_canonical(self, q: Any, dtype: Any, scalar_first: bool) -> Any:
+        """Cast a canonical quaternion to ``dtype``, keeping it canonical: narrowing can round a tiny
+        positive w to 0 (see ``_core.CANONICAL``), so a narrowed result is standardised again."""
+        if dtype.itemsize >= q.dtype.itemsize:
+            return self.astype(q, dtype)
+        return _core.standardize_quaternion(self.xp, self.astype(q, dtype), scalar_first=scalar_first)

@@ -35,6 +35,18 @@ def op(**trailing: tuple[int, ...]) -> Callable[[F], F]:
     return register
 
 
+# Core functions whose result is a quaternion in canonical sign. The backends re-standardise such a
+# result after casting it back to a 16-bit dtype: a w that is tiny but positive in float32 can round
+# to 0 there, and then the sign of x decides.
+CANONICAL: set[str] = set()
+
+
+def canonical(fn: F) -> F:
+    """Mark a core function whose result is a quaternion in canonical sign (see ``CANONICAL``)."""
+    CANONICAL.add(fn.__name__)
+    return fn
+
+
 def split_quaternion(q: Any, scalar_first: bool) -> tuple[Any, Any, Any, Any]:
     """Components (w, x, y, z) of ``q`` in either storage order."""
     if scalar_first:
@@ -76,15 +88,18 @@ def quaternion_to_matrix(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
     """
     w, x, y, z = split_quaternion(q, scalar_first)
     n2 = w * w + x * x + y * y + z * z
-    # Dividing by |q|^2 here, instead of normalising q first, makes the map scale invariant for one
-    # division. The zero quaternion takes the s = 0 branch, which is the identity; the double where
-    # keeps 2 / n2 (and so its gradient) finite in the branch that is thrown away.
+    # Normalise first, then use the unit formula (s = 2). Dividing by |q|^2 instead (s = 2 / n2) has
+    # the same value but puts d(1/n2)/dn2 = -1/n2^2 on the reverse-mode chain, which overflows float32
+    # for |q| below ~3e-10; through 1/sqrt(n2) every intermediate derivative stays near 1/n2.
+    # The zero quaternion takes inv = 0, which gives the identity; the double where keeps 1/sqrt (and
+    # its derivative) finite in the branch that is thrown away.
     nonzero = n2 >= xp.finfo(n2.dtype).tiny
-    s = xp.where(nonzero, 2.0 / xp.where(nonzero, n2, 1.0), 0.0)
-    sx, sy, sz = s * x, s * y, s * z
-    xx, yy, zz = sx * x, sy * y, sz * z
-    xy, xz, yz = sx * y, sx * z, sy * z
-    wx, wy, wz = sx * w, sy * w, sz * w
+    inv = xp.where(nonzero, 1.0 / xp.sqrt(xp.where(nonzero, n2, 1.0)), 0.0)
+    w, x, y, z = w * inv, x * inv, y * inv, z * inv
+    x2, y2, z2 = 2.0 * x, 2.0 * y, 2.0 * z
+    xx, yy, zz = x2 * x, y2 * y, z2 * z
+    xy, xz, yz = x2 * y, x2 * z, y2 * z
+    wx, wy, wz = x2 * w, y2 * w, z2 * w
     return stack_matrix(
         xp,
         [
@@ -95,6 +110,7 @@ def quaternion_to_matrix(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
     )  # fmt: skip
 
 
+@canonical
 @op(matrix=(3, 3))
 def matrix_to_quaternion(xp: Any, matrix: Any, *, scalar_first: bool = True) -> Any:
     """Unit quaternion of a rotation matrix, in canonical sign.
@@ -193,6 +209,7 @@ def xyzw_to_wxyz(xp: Any, q: Any) -> Any:
     return xp.stack([q[..., 3], q[..., 0], q[..., 1], q[..., 2]], axis=-1)
 
 
+@canonical
 @op(uniform=(3,))
 def quaternions_from_uniform(xp: Any, uniform: Any, *, scalar_first: bool = True) -> Any:
     """Shoemake's map from three uniform [0, 1) numbers to a uniformly distributed unit quaternion, in

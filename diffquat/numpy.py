@@ -8,15 +8,36 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from . import _core
+from . import _algebra, _core, _euler
+from . import _representations as _rep
 from ._backend import Backend, documented, shape_tuple
 
 __all__ = [
+    "axis_angle_to_matrix",
+    "axis_angle_to_quaternion",
+    "euler_angles_to_matrix",
+    "euler_angles_to_quaternion",
+    "fit_rotation",
+    "matrix_geodesic_distance",
+    "matrix_to_axis_angle",
+    "matrix_to_euler_angles",
     "matrix_to_quaternion",
+    "matrix_to_rotation_6d",
     "normalize_quaternion",
+    "quaternion_apply",
+    "quaternion_conjugate",
+    "quaternion_geodesic_distance",
+    "quaternion_invert",
+    "quaternion_multiply",
+    "quaternion_slerp",
+    "quaternion_to_axis_angle",
+    "quaternion_to_euler_angles",
     "quaternion_to_matrix",
     "random_quaternions",
+    "rotation_6d_to_matrix",
+    "special_procrustes",
     "standardize_quaternion",
+    "symmetric_matrix_to_quaternion",
     "wxyz_to_xyzw",
     "xyzw_to_wxyz",
 ]
@@ -70,6 +91,127 @@ def xyzw_to_wxyz(q: ArrayLike) -> NDArray[Any]:
     return _B(_core.xyzw_to_wxyz, q)
 
 
+@documented(_rep.rotation_6d_to_matrix)
+def rotation_6d_to_matrix(d6: ArrayLike) -> NDArray[Any]:
+    return _B(_rep.rotation_6d_to_matrix, d6)
+
+
+@documented(_rep.matrix_to_rotation_6d)
+def matrix_to_rotation_6d(matrix: ArrayLike) -> NDArray[Any]:
+    return _B(_rep.matrix_to_rotation_6d, matrix)
+
+
+@documented(_rep.special_procrustes)
+def special_procrustes(matrix: ArrayLike) -> NDArray[Any]:
+    return _B(_rep.special_procrustes, matrix)
+
+
+@documented(_rep.symmetric_matrix_to_quaternion)
+def symmetric_matrix_to_quaternion(a: ArrayLike, *, scalar_first: bool = True) -> NDArray[Any]:
+    return _B(_rep.symmetric_matrix_to_quaternion, a, scalar_first=scalar_first)
+
+
+@documented(_rep.fit_rotation)
+def fit_rotation(source: ArrayLike, target: ArrayLike, weights: ArrayLike | None = None) -> NDArray[Any]:
+    return _B(_rep.fit_rotation, source, target, weights)
+
+
+# Rotation vector, Euler angles, quaternion algebra, interpolation and distances.
+
+
+@documented(_algebra.axis_angle_to_quaternion)
+def axis_angle_to_quaternion(axis_angle: ArrayLike, *, scalar_first: bool = True) -> NDArray[Any]:
+    return _B(_algebra.axis_angle_to_quaternion, axis_angle, scalar_first=scalar_first)
+
+
+@documented(_algebra.quaternion_to_axis_angle)
+def quaternion_to_axis_angle(q: ArrayLike, *, scalar_first: bool = True) -> NDArray[Any]:
+    return _B(_algebra.quaternion_to_axis_angle, q, scalar_first=scalar_first)
+
+
+@documented(_algebra.axis_angle_to_matrix)
+def axis_angle_to_matrix(axis_angle: ArrayLike) -> NDArray[Any]:
+    return _B(_algebra.axis_angle_to_matrix, axis_angle)
+
+
+@documented(_algebra.matrix_to_axis_angle)
+def matrix_to_axis_angle(matrix: ArrayLike) -> NDArray[Any]:
+    return _B(_algebra.matrix_to_axis_angle, matrix)
+
+
+@documented(_euler.euler_angles_to_matrix)
+def euler_angles_to_matrix(angles: ArrayLike, convention: str, *, degrees: bool = False) -> NDArray[Any]:
+    return _B(_euler.euler_angles_to_matrix, angles, convention=convention, degrees=degrees)
+
+
+@documented(_euler.matrix_to_euler_angles)
+def matrix_to_euler_angles(matrix: ArrayLike, convention: str, *, degrees: bool = False) -> NDArray[Any]:
+    return _B(_euler.matrix_to_euler_angles, matrix, convention=convention, degrees=degrees)
+
+
+@documented(_euler.euler_angles_to_quaternion)
+def euler_angles_to_quaternion(
+    angles: ArrayLike, convention: str, *, degrees: bool = False, scalar_first: bool = True
+) -> NDArray[Any]:
+    return _B(
+        _euler.euler_angles_to_quaternion,
+        angles,
+        convention=convention,
+        degrees=degrees,
+        scalar_first=scalar_first,
+    )
+
+
+@documented(_euler.quaternion_to_euler_angles)
+def quaternion_to_euler_angles(
+    q: ArrayLike, convention: str, *, degrees: bool = False, scalar_first: bool = True
+) -> NDArray[Any]:
+    return _B(
+        _euler.quaternion_to_euler_angles,
+        q,
+        convention=convention,
+        degrees=degrees,
+        scalar_first=scalar_first,
+    )
+
+
+@documented(_algebra.quaternion_multiply)
+def quaternion_multiply(p: ArrayLike, q: ArrayLike, *, scalar_first: bool = True) -> NDArray[Any]:
+    return _B(_algebra.quaternion_multiply, p, q, scalar_first=scalar_first)
+
+
+@documented(_algebra.quaternion_conjugate)
+def quaternion_conjugate(q: ArrayLike, *, scalar_first: bool = True) -> NDArray[Any]:
+    return _B(_algebra.quaternion_conjugate, q, scalar_first=scalar_first)
+
+
+@documented(_algebra.quaternion_invert)
+def quaternion_invert(q: ArrayLike, *, scalar_first: bool = True) -> NDArray[Any]:
+    return _B(_algebra.quaternion_invert, q, scalar_first=scalar_first)
+
+
+@documented(_algebra.quaternion_apply)
+def quaternion_apply(q: ArrayLike, v: ArrayLike, *, scalar_first: bool = True) -> NDArray[Any]:
+    return _B(_algebra.quaternion_apply, q, v, scalar_first=scalar_first)
+
+
+@documented(_algebra.quaternion_slerp)
+def quaternion_slerp(p: ArrayLike, q: ArrayLike, t: ArrayLike, *, scalar_first: bool = True) -> NDArray[Any]:
+    return _B(_algebra.quaternion_slerp, p, q, t, scalar_first=scalar_first)
+
+
+@documented(_algebra.quaternion_geodesic_distance)
+def quaternion_geodesic_distance(p: ArrayLike, q: ArrayLike, *, scalar_first: bool = True) -> NDArray[Any]:
+    # np.asarray: a 0-d result must stay an array, not become a NumPy scalar.
+    return np.asarray(_B(_algebra.quaternion_geodesic_distance, p, q, scalar_first=scalar_first))
+
+
+@documented(_algebra.matrix_geodesic_distance)
+def matrix_geodesic_distance(matrix1: ArrayLike, matrix2: ArrayLike) -> NDArray[Any]:
+    # np.asarray: a 0-d result must stay an array, not become a NumPy scalar.
+    return np.asarray(_B(_algebra.matrix_geodesic_distance, matrix1, matrix2))
+
+
 def random_quaternions(
     shape: int | tuple[int, ...] = (),
     *,
@@ -87,4 +229,4 @@ def random_quaternions(
     """
     uniform = np.random.default_rng(rng).random((*shape_tuple(shape), 3))
     q = _B(_core.quaternions_from_uniform, uniform, scalar_first=scalar_first)
-    return np.asarray(q).astype(dtype)
+    return _B.cast_canonical(np.asarray(q), np.dtype(dtype), scalar_first)

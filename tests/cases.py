@@ -8,12 +8,13 @@ implementation, wherever scipy has the operation.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import Rotation, Slerp
 
 DTYPES = ("float64", "float32", "float16", "bfloat16")
 
@@ -73,7 +74,10 @@ def _tilted_axes(tilts: np.ndarray) -> np.ndarray:
 
 
 def _near_half_turns() -> np.ndarray:
-    axes = _tilted_axes(10.0 ** -np.arange(3, 9))  # 18 axes tilted by 1e-3 ... 1e-8
+    # 36 axes tilted by 1e-3 ... 1e-8, and their negatives: then w is tiny and positive while x, y or z
+    # is negative, the combination where a rounding of w to 0 would break the canonical sign.
+    axes = _tilted_axes(10.0 ** -np.arange(3, 9))
+    axes = np.concatenate([axes, -axes])
     angles = np.pi - 10.0 ** -np.arange(1, 9)  # pi - 1e-1 ... pi - 1e-8
     return axis_angle_quaternions(np.repeat(axes, len(angles), axis=0), np.tile(angles, len(axes)))
 
@@ -88,6 +92,17 @@ def _norms(dtype: str) -> np.ndarray:
     lo, hi = NORM_RANGE[dtype]
     scales = np.logspace(np.log10(lo), np.log10(hi), 9)
     return (uniform_quaternions(8, seed=3)[None, :, :] * scales[:, None, None]).reshape(-1, 4)
+
+
+def _gimbal_locks() -> np.ndarray:
+    """The 24 quaternions with entries in {0, +-1/2, +-1}: the identity, the half-turns about x, y, z and
+    the third-turns about the cube's diagonals, each with both signs. Every Euler convention has exact
+    gimbal locks among them (proper sequences: the identity and the half-turns; Tait-Bryan sequences:
+    the third-turns that take the third axis onto the first), the others are far from any lock, and the
+    entries are exact in every dtype, so the lock is exact on every backend."""
+    units = np.vstack([np.eye(4), -np.eye(4)])
+    halves = np.array([(a, b, c, d) for a in (-1, 1) for b in (-1, 1) for c in (-1, 1) for d in (-1, 1)])
+    return np.vstack([units, 0.5 * halves])
 
 
 @dataclass(frozen=True)
@@ -112,6 +127,7 @@ CASES = [
     Case("near_identity", _fixed(_near_identity())),
     Case("norms", _norms),
     Case("sign_flip", _fixed(np.stack([uniform_quaternions(8, 1), -uniform_quaternions(8, 1)]))),
+    Case("gimbal_lock", _fixed(_gimbal_locks())),
     Case("zero", _fixed(np.zeros((1, 4))), differentiable=False),
     Case("batch_scalar", _fixed(uniform_quaternions(1, seed=4)[0])),
     Case("batch_1", _fixed(uniform_quaternions(1, seed=5))),
@@ -128,6 +144,7 @@ EDGE_CASES = ("random", "identity", "half_turns", "near_half_turns", "near_ident
 
 
 def _flat(x: np.ndarray, trailing: int) -> tuple[np.ndarray, tuple[int, ...]]:
+    x = np.array(x)  # a writable copy: scipy's Cython refuses read-only views of jax arrays
     batch = x.shape[: x.ndim - trailing]
     return x.reshape(-1, *x.shape[x.ndim - trailing :]), batch
 
@@ -194,6 +211,11 @@ class Op:
     applies: the cases this op is run on at all (default: all).
     smooth_at: the cases where the op is differentiable, so that gradients must match finite
         differences; elsewhere they must only be finite (default: ``case.differentiable``).
+    to_scalar_last: maps one quaternion argument (see ``quaternion_args``) to its scalar-last form
+        (default: reorder the last axis; the 10D representation permutes its matrix instead).
+    relative: errors are measured relative to the largest entry of each expected output element (for
+        ops whose output scales with the norm of the input, e.g. ``quaternion_invert`` at 1e20).
+    periodic: the outputs are angles, compared modulo 2 pi (an angle of pi may come back as -pi).
     """
 
     name: str
@@ -212,6 +234,9 @@ class Op:
     tol_scale: float = 1.0
     applies: Callable[[Case], bool] = lambda case: True
     smooth_at: Callable[[Case], bool] = lambda case: case.differentiable
+    to_scalar_last: Callable[[np.ndarray], np.ndarray] = lambda x: x[..., [1, 2, 3, 0]]
+    relative: bool = False
+    periodic: bool = False
 
     @property
     def id(self) -> str:
@@ -243,6 +268,132 @@ def _matrix(q: np.ndarray) -> tuple[np.ndarray, ...]:
     return (oracle_quaternion_to_matrix(q),)
 
 
+# ---------------------------------------------------------------------------------------------------
+# Representations for network outputs (6D, 9D, 10D) and fitting. Inputs are built from the case
+# quaternion q so that every named case (half-turns, near identity, norms, batch shapes) reaches them:
+# its rotation R(q), scaled by |q| (so the "norms" case spans the dtype's range and "zero" gives the
+# degenerate all-zero input).
+
+
+def _scale(q: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(q, axis=-1)
+
+
+def _d6(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Unnormalised, non-orthogonal columns whose Gram-Schmidt is R(q): (2 c0, c1 + 0.5 c0) * |q|."""
+    r = oracle_quaternion_to_matrix(q)
+    c0, c1 = r[..., :, 0], r[..., :, 1]
+    return (np.concatenate([2.0 * c0, c1 + 0.5 * c0], axis=-1) * _scale(q)[..., None],)
+
+
+def oracle_rotation_6d_to_matrix(d6: np.ndarray) -> np.ndarray:
+    """Gram-Schmidt by numpy's QR (Householder: an independent algorithm), signs fixed so that the
+    diagonal of the triangular factor is positive; the documented fallbacks for degenerate input."""
+    flat, batch = _flat(d6, 1)
+    out = np.zeros((len(flat), 3, 3))
+    for k, row in enumerate(flat):
+        a1, a2 = row[:3], row[3:]
+        if a1 @ a1 < np.finfo(np.float64).tiny:
+            a1 = np.array([1.0, 0.0, 0.0])
+        b1 = a1 / np.linalg.norm(a1)
+        resid = a2 - (b1 @ a2) * b1
+        if resid @ resid <= np.finfo(np.float64).eps ** 2 * (a2 @ a2) + np.finfo(np.float64).tiny:
+            a2 = np.eye(3)[int(np.argmin(np.abs(b1)))]  # argmin: the first on ties
+        qm, rm = np.linalg.qr(np.stack([a1, a2], axis=-1))
+        qm = qm * np.sign(np.diag(rm))
+        out[k] = np.stack([qm[:, 0], qm[:, 1], np.cross(qm[:, 0], qm[:, 1])], axis=-1)
+    return out.reshape((*batch, 3, 3))
+
+
+# Fixed matrices right-multiplying R(q): generic singular values, one with det < 0 (the determinant
+# fix), one of rank 2 (s_3 = 0; still differentiable: the denominators are s_i + s_3 > 0).
+_REFLECTION = np.array([[1.8, 0.3, -0.2], [0.1, 1.1, 0.4], [0.3, -0.2, -0.5]])
+_GENERIC = np.array([[1.5, 0.2], [-0.3, 0.9], [0.4, 0.1]])
+_RANK2 = np.concatenate([_GENERIC, _GENERIC @ [[1.0], [0.2]]], axis=1)  # column 2 = column 0 + 0.2 column 1
+
+
+def _procrustes_inputs(factor: np.ndarray) -> Callable[[np.ndarray], tuple[np.ndarray, ...]]:
+    return lambda q: (_scale(q)[..., None, None] * (oracle_quaternion_to_matrix(q) @ factor),)
+
+
+def oracle_special_procrustes(matrix: np.ndarray) -> np.ndarray:
+    """float64 NumPy SVD with the determinant fixed (scipy's Rotation has no Procrustes of a matrix)."""
+    u, _, vh = np.linalg.svd(matrix)
+    d = np.sign(np.linalg.det(u @ vh))
+    return (u * np.stack([np.ones_like(d), np.ones_like(d), d], axis=-1)[..., None, :]) @ vh
+
+
+_UPPER = [(0, 0), (0, 1), (0, 2), (0, 3), (1, 1), (1, 2), (1, 3), (2, 2), (2, 3), (3, 3)]
+
+
+def _sym4(a: np.ndarray) -> np.ndarray:
+    m = np.zeros((*a.shape[:-1], 4, 4))
+    for k, (i, j) in enumerate(_UPPER):
+        m[..., i, j] = m[..., j, i] = a[..., k]
+    return m
+
+
+def _upper10(m: np.ndarray) -> np.ndarray:
+    return np.stack([m[..., i, j] for i, j in _UPPER], axis=-1)
+
+
+def _a10(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    """|q| L diag(0, 1, 2, 3) L^T with L the (orthogonal) left-multiplication matrix of q/|q|, whose
+    first column is q/|q|: the eigenvector of the smallest eigenvalue is q/|q|, with gap |q|."""
+    w, x, y, z = np.moveaxis(oracle_normalize(q), -1, 0)
+    left = np.stack(
+        [
+            np.stack([w, -x, -y, -z], axis=-1),
+            np.stack([x, w, -z, y], axis=-1),
+            np.stack([y, z, w, -x], axis=-1),
+            np.stack([z, -y, x, w], axis=-1),
+        ],
+        axis=-2,
+    )
+    m = (left * np.array([0.0, 1.0, 2.0, 3.0])) @ np.swapaxes(left, -1, -2)
+    return (_upper10(m * _scale(q)[..., None, None]),)
+
+
+def oracle_symmetric_matrix_to_quaternion(a: np.ndarray) -> np.ndarray:
+    """NumPy's float64 eigh (LAPACK), canonical sign."""
+    return oracle_standardize(np.linalg.eigh(_sym4(a))[1][..., :, 0])
+
+
+def a10_to_scalar_last(a: np.ndarray) -> np.ndarray:
+    """The same matrix with its rows and columns in (x, y, z, w) order."""
+    return _upper10(_sym4(a)[..., [1, 2, 3, 0], :][..., :, [1, 2, 3, 0]])
+
+
+# Points for fit_rotation: 5 generic points, target = |q| R(q) source + noise, positive weights.
+_POINTS = np.random.default_rng(11).normal(size=(5, 3))
+_NOISE = 0.05 * np.random.default_rng(12).normal(size=(5, 3))
+_WEIGHTS = np.array([1.0, 0.5, 2.0, 0.25, 1.5])
+
+
+def _fit_inputs(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    batch = q.shape[:-1]
+    source = np.broadcast_to(_POINTS, (*batch, 5, 3)).copy()
+    target = _scale(q)[..., None, None] * (
+        source @ np.swapaxes(oracle_quaternion_to_matrix(q), -1, -2) + _NOISE
+    )
+    return source, target, np.broadcast_to(_WEIGHTS, (*batch, 5)).copy()
+
+
+def oracle_fit_rotation(
+    source: np.ndarray, target: np.ndarray, weights: np.ndarray | None = None
+) -> np.ndarray:
+    """scipy's ``align_vectors(a, b)`` finds R with a ~ R b: here a = target, b = source."""
+    batch = source.shape[:-2]
+    s, t = source.reshape(-1, *source.shape[-2:]), target.reshape(-1, *target.shape[-2:])
+    w = None if weights is None else weights.reshape(-1, weights.shape[-1])
+    out = np.zeros((len(s), 3, 3))
+    for k in range(len(s)):
+        with warnings.catch_warnings():  # scipy warns that the zero input has no unique rotation
+            warnings.simplefilter("ignore")
+            out[k] = Rotation.align_vectors(t[k], s[k], None if w is None else w[k])[0].as_matrix()
+    return out.reshape((*batch, 3, 3))
+
+
 OPS = [
     Op("quaternion_to_matrix", _q, oracle_quaternion_to_matrix, output="matrix"),
     Op(
@@ -263,8 +414,361 @@ OPS = [
     Op("normalize_quaternion", _q, oracle_normalize, unit=True),
     Op("wxyz_to_xyzw", _q, lambda q: q[..., [1, 2, 3, 0]], quaternion_args=(), scalar_first=False),
     Op("xyzw_to_wxyz", _q, lambda q: q[..., [3, 0, 1, 2]], quaternion_args=(), scalar_first=False),
+    Op(
+        "rotation_6d_to_matrix",
+        _d6,
+        oracle_rotation_6d_to_matrix,
+        quaternion_args=(),
+        output="matrix",
+        scalar_first=False,
+    ),
+    Op(
+        "matrix_to_rotation_6d",
+        _matrix,
+        lambda m: np.concatenate([m[..., :, 0], m[..., :, 1]], axis=-1),
+        quaternion_args=(),
+        output="other",
+        scalar_first=False,
+    ),
+    # Three rows: all singular values equal (|q| R: where a library SVD backward divides by zero),
+    # det < 0, and rank 2. Each is smooth, so gradients must match finite differences there too.
+    *(
+        Op(
+            "special_procrustes",
+            _procrustes_inputs(factor),
+            oracle_special_procrustes,
+            quaternion_args=(),
+            output="matrix",
+            scalar_first=False,
+            label=label,
+        )
+        for label, factor in [
+            ("special_procrustes", np.eye(3)),
+            ("special_procrustes-reflection", _REFLECTION),
+            ("special_procrustes-rank2", _RANK2),
+        ]
+    ),
+    Op(
+        "symmetric_matrix_to_quaternion",
+        _a10,
+        oracle_symmetric_matrix_to_quaternion,
+        canonical=True,
+        unit=True,
+        up_to_sign=True,
+        to_scalar_last=a10_to_scalar_last,
+    ),
+    Op(
+        "fit_rotation",
+        _fit_inputs,
+        oracle_fit_rotation,
+        quaternion_args=(),
+        output="matrix",
+        scalar_first=False,
+    ),
+    Op(
+        "fit_rotation",
+        lambda q: _fit_inputs(q)[:2],
+        oracle_fit_rotation,
+        quaternion_args=(),
+        output="matrix",
+        scalar_first=False,
+        label="fit_rotation-unweighted",
+    ),
 ]
-OPS_BY_NAME = {op.name: op for op in OPS}
+
+# ---------------------------------------------------------------------------------------------------
+# Rotation vector, Euler angles, quaternion algebra, interpolation and distances.
+
+
+def _rotation(q: np.ndarray) -> tuple[Rotation, tuple[int, ...]]:
+    """scipy rotations of float64 quaternions (w, x, y, z) of any shape, the zero quaternion being the
+    identity (diffquat's documented meaning); with the batch shape to restore."""
+    flat, batch = _flat(q, 1)
+    zero = np.all(flat == 0, axis=-1)
+    safe = np.where(zero[:, None], [1.0, 0.0, 0.0, 0.0], flat)
+    return Rotation.from_quat(safe if len(flat) else [1.0, 0, 0, 0], scalar_first=True), batch
+
+
+def _batched(fn: Callable[[Rotation], np.ndarray], q: np.ndarray, trailing: tuple[int, ...]) -> np.ndarray:
+    rot, batch = _rotation(q)
+    n = int(np.prod(batch))
+    out = fn(rot) if n else np.zeros((0, *trailing))
+    return np.asarray(out).reshape((*batch, *trailing))
+
+
+def _companion(q: np.ndarray, seed: int) -> np.ndarray:
+    """Uniform unit quaternions (scipy's sampler) with the batch shape of ``q``."""
+    batch = q.shape[:-1]
+    n = int(np.prod(batch))
+    return uniform_quaternions(n, seed).reshape(q.shape) if n else np.zeros(q.shape)
+
+
+def _rotvec(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    return (_batched(lambda r: r.as_rotvec(), oracle_standardize(q), (3,)),)
+
+
+def oracle_quaternion_to_axis_angle(q: np.ndarray) -> np.ndarray:
+    # scipy flips where w < 0; diffquat's documented rule is the canonical sign (which also decides
+    # w = 0, where scipy keeps the input's sign): the vector of the canonical quaternion.
+    return _rotvec(q)[0]
+
+
+def oracle_axis_angle_to_quaternion(v: np.ndarray) -> np.ndarray:
+    flat, batch = _flat(v, 1)
+    out = Rotation.from_rotvec(flat).as_quat(scalar_first=True) if len(flat) else np.zeros((0, 4))
+    return out.reshape((*batch, 4))
+
+
+def oracle_axis_angle_to_matrix(v: np.ndarray) -> np.ndarray:
+    return oracle_quaternion_to_matrix(oracle_axis_angle_to_quaternion(v))
+
+
+def oracle_matrix_to_axis_angle(matrix: np.ndarray) -> np.ndarray:
+    return _rotvec(oracle_matrix_to_quaternion(matrix))[0]
+
+
+def _euler(convention: str) -> Callable[[np.ndarray], tuple[np.ndarray, ...]]:
+    def angles(q: np.ndarray) -> tuple[np.ndarray, ...]:
+        return (oracle_quaternion_to_euler(q, convention),)
+
+    return angles
+
+
+def oracle_quaternion_to_euler(q: np.ndarray, convention: str) -> np.ndarray:
+    return _batched(lambda r: r.as_euler(convention, suppress_warnings=True), q, (3,))
+
+
+def oracle_euler_to_quaternion(angles: np.ndarray, convention: str) -> np.ndarray:
+    flat, batch = _flat(angles, 1)
+    out = Rotation.from_euler(convention, flat).as_quat(scalar_first=True) if len(flat) else np.zeros((0, 4))
+    return out.reshape((*batch, 4))
+
+
+def _norm(q: np.ndarray) -> np.ndarray:
+    return np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def oracle_multiply(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    # scipy composes unit quaternions (R(p) * R(q), sign as the Hamilton product); the norms multiply.
+    rp, rq = _rotation(p)[0], _rotation(q)[0]
+    unit = (rp * rq).as_quat(scalar_first=True) if p.size else np.zeros((0, 4))
+    return unit.reshape(p.shape) * _norm(p) * _norm(q)
+
+
+def oracle_conjugate(q: np.ndarray) -> np.ndarray:
+    return _batched(lambda r: r.inv().as_quat(scalar_first=True), q, (4,)) * _norm(q)
+
+
+def oracle_invert(q: np.ndarray) -> np.ndarray:
+    norm = _norm(q)  # documented: zero -> zero
+    return _batched(lambda r: r.inv().as_quat(scalar_first=True), q, (4,)) / np.where(norm > 0, norm, np.inf)
+
+
+def _vectors(q: np.ndarray) -> np.ndarray:
+    return np.random.default_rng(12).normal(size=(*q.shape[:-1], 3))
+
+
+def oracle_apply(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    rot = _rotation(q)[0]
+    return rot.apply(np.array(v).reshape(-1, 3)).reshape(v.shape) if v.size else np.zeros(v.shape)
+
+
+def _pair(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(p, p q): the rotation between the two is the case's own quaternion, so the identity case gives
+    q = +-p, the half-turns antipodal rotations, and so on."""
+    p = _companion(q, seed=11)
+    return p, hamilton(p, q)
+
+
+def hamilton(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hamilton product, written out (i*i = -1), float64."""
+    pw, px, py, pz = np.moveaxis(p, -1, 0)
+    qw, qx, qy, qz = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            pw * qw - px * qx - py * qy - pz * qz,
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw,
+        ],
+        axis=-1,
+    )
+
+
+def _slerp_inputs(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    t = np.random.default_rng(13).uniform(0.1, 0.9, size=q.shape[:-1])
+    return (*_pair(q), t)
+
+
+def oracle_slerp(p: np.ndarray, q: np.ndarray, t: np.ndarray) -> np.ndarray:
+    rp, rq = _rotation(p)[0], _rotation(q)[0]
+    n = int(np.prod(t.shape))
+    out = [Slerp([0.0, 1.0], Rotation.concatenate([rp[i], rq[i]]))(t.reshape(-1)[i]) for i in range(n)]
+    quats = np.array([r.as_quat(scalar_first=True) for r in out]).reshape((*t.shape, 4))
+    return quats
+
+
+def oracle_quaternion_distance(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    rp, rq = _rotation(p)[0], _rotation(q)[0]
+    return (rp.inv() * rq).magnitude().reshape(p.shape[:-1]) if p.size else np.zeros(p.shape[:-1])
+
+
+def oracle_matrix_distance(m1: np.ndarray, m2: np.ndarray) -> np.ndarray:
+    return oracle_quaternion_distance(oracle_matrix_to_quaternion(m1), oracle_matrix_to_quaternion(m2))
+
+
+def _except(*names: str) -> Callable[[Case], bool]:
+    return lambda case: case.differentiable and case.name not in names
+
+
+# The rotation vector jumps to its antipode where the angle crosses pi (w = 0), so log-type maps are
+# differentiable everywhere except there: finite differences must agree everywhere else, and the
+# gradient must be finite at the jump. Near half-turns (w down to 5e-9) the finite-difference step
+# (1e-6) itself crosses the jump, so those are checked for finiteness only too; gimbal_lock holds exact
+# half-turns. The same holds for slerp between antipodal rotations (two shortest arcs).
+AT_HALF_TURNS = ("half_turns", "near_half_turns", "gimbal_lock")
+# A distance has a kink where it is 0 (like a norm) and where it is pi: cases whose two rotations are
+# equal, antipodal or within the finite-difference step of either are checked for finiteness only.
+AT_DISTANCE_KINKS = ("identity", "near_identity", *AT_HALF_TURNS)
+# Euler angles are ill-conditioned near a gimbal lock: a rotation 1e-8 away from one moves the first
+# and third angles by O(1), so comparing them with scipy across dtypes is meaningless there. Angle
+# outputs are checked on generic rotations and at exact locks (gimbal_lock), whose round trip through
+# every convention is tested separately (tests/test_geometry.py) on every case.
+EULER_ILL_CONDITIONED = ("half_turns", "near_half_turns", "near_identity")
+# One row per function, together covering intrinsic and extrinsic, Tait-Bryan and proper sequences
+# (all 24 conventions are compared with scipy in tests/test_geometry.py).
+EULER_ROWS = {
+    "euler_angles_to_matrix": "XYZ",
+    "matrix_to_euler_angles": "ZXZ",
+    "euler_angles_to_quaternion": "zyx",
+    "quaternion_to_euler_angles": "xzx",
+}
+
+
+def _euler_ops() -> list[Op]:
+    def smooth_at(conv: str) -> Callable[[Case], bool]:
+        # The angles jump at a lock; for proper sequences (e.g. ZXZ) the identity is one.
+        return _except("gimbal_lock", "identity") if conv[0] == conv[2] else _except("gimbal_lock")
+
+    def well_conditioned(case: Case) -> bool:
+        return case.name not in EULER_ILL_CONDITIONED
+
+    def row(name: str, inputs: Callable[..., Any], oracle: Callable[..., np.ndarray], **kw: Any) -> Op:
+        conv = EULER_ROWS[name]
+        return Op(name, inputs, oracle, kwargs={"convention": conv}, label=f"{name}[{conv}]", **kw)
+
+    to_matrix, from_matrix = EULER_ROWS["euler_angles_to_matrix"], EULER_ROWS["matrix_to_euler_angles"]
+    to_q, from_q = EULER_ROWS["euler_angles_to_quaternion"], EULER_ROWS["quaternion_to_euler_angles"]
+    return [
+        row(
+            "euler_angles_to_matrix",
+            _euler(to_matrix),
+            lambda a: oracle_quaternion_to_matrix(oracle_euler_to_quaternion(a, to_matrix)),
+            quaternion_args=(),
+            output="matrix",
+            scalar_first=False,
+        ),
+        row(
+            "matrix_to_euler_angles",
+            _matrix,
+            lambda m: oracle_quaternion_to_euler(oracle_matrix_to_quaternion(m), from_matrix),
+            quaternion_args=(),
+            output="other",
+            scalar_first=False,
+            applies=well_conditioned,
+            smooth_at=smooth_at(from_matrix),
+            periodic=True,
+        ),
+        row(
+            "euler_angles_to_quaternion",
+            _euler(to_q),
+            lambda a: oracle_euler_to_quaternion(a, to_q),
+            quaternion_args=(),
+            unit=True,
+        ),
+        row(
+            "quaternion_to_euler_angles",
+            _q,
+            lambda q: oracle_quaternion_to_euler(q, from_q),
+            output="other",
+            applies=well_conditioned,
+            smooth_at=smooth_at(from_q),
+            periodic=True,
+        ),
+    ]
+
+
+OPS += [
+    Op("axis_angle_to_quaternion", _rotvec, oracle_axis_angle_to_quaternion, quaternion_args=(), unit=True),
+    Op(
+        "quaternion_to_axis_angle",
+        _q,
+        oracle_quaternion_to_axis_angle,
+        output="other",
+        smooth_at=_except(*AT_HALF_TURNS),
+    ),
+    Op(
+        "axis_angle_to_matrix",
+        _rotvec,
+        oracle_axis_angle_to_matrix,
+        quaternion_args=(),
+        output="matrix",
+        scalar_first=False,
+    ),
+    Op(
+        "matrix_to_axis_angle",
+        _matrix,
+        oracle_matrix_to_axis_angle,
+        quaternion_args=(),
+        output="other",
+        scalar_first=False,
+        # At exact half-turns rounding legitimately decides the canonical sign, so v or -v (the same
+        # rotation there); elsewhere -v is another rotation, which the round trip R -> v -> R rules out.
+        up_to_sign=True,
+        smooth_at=_except(*AT_HALF_TURNS),
+    ),
+    *_euler_ops(),
+    Op(
+        "quaternion_multiply",
+        lambda q: (_companion(q, seed=11), q),
+        oracle_multiply,
+        quaternion_args=(0, 1),
+        relative=True,
+    ),
+    Op("quaternion_conjugate", _q, oracle_conjugate, relative=True),
+    Op("quaternion_invert", _q, oracle_invert, relative=True),
+    Op("quaternion_apply", lambda q: (q, _vectors(q)), oracle_apply, output="other"),
+    Op(
+        "quaternion_slerp",
+        _slerp_inputs,
+        oracle_slerp,
+        quaternion_args=(0, 1),
+        unit=True,
+        up_to_sign=True,  # scipy's Slerp returns the rotation, not a particular sign of its quaternion
+        # Between rotations a half-turn apart there are two shortest arcs and rounding picks one: that
+        # is checked on its own (tests/test_geometry.py), with its gradient's finiteness.
+        applies=lambda case: case.name not in AT_HALF_TURNS,
+    ),
+    Op(
+        "quaternion_geodesic_distance",
+        _pair,
+        oracle_quaternion_distance,
+        quaternion_args=(0, 1),
+        output="other",
+        smooth_at=_except(*AT_DISTANCE_KINKS),
+    ),
+    Op(
+        "matrix_geodesic_distance",
+        lambda q: tuple(oracle_quaternion_to_matrix(x) for x in _pair(q)),
+        oracle_matrix_distance,
+        quaternion_args=(),
+        output="other",
+        scalar_first=False,
+        smooth_at=_except(*AT_DISTANCE_KINKS),
+    ),
+]
+
+OPS_BY_NAME = {op.id: op for op in OPS}
 
 # Public names that are not rows of the table, with the test that covers each.
 NOT_IN_TABLE = {"random_quaternions": "tests/test_random.py"}
@@ -279,16 +783,19 @@ def only(
     backend: Callable[[str], bool] | None = None,
     dtype: Callable[[str], bool] | None = None,
     case: Callable[[Case], bool] | None = None,
+    pair: Callable[[Op, Case], bool] | None = None,
 ) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
-    """Decorator: run a table-driven test only on the ops, backends, dtypes and cases that pass.
-    Stacked decorators combine: every filter must pass."""
-    new = {k: v for k, v in {"op": op, "backend": backend, "dtype": dtype, "case": case}.items() if v}
+    """Decorator: run a table-driven test only on the ops, backends, dtypes and cases that pass, and
+    (``pair``) only on the (op, case) combinations that pass. Stacked decorators combine: every filter
+    must pass."""
+    axes = {"op": op, "backend": backend, "dtype": dtype, "case": case, "pair": pair}
+    new = {k: v for k, v in axes.items() if v}
 
     def mark(fn: Callable[..., Any]) -> Callable[..., Any]:
         filters = dict(getattr(fn, "diffquat_filters", {}))
         for axis, keep in new.items():
             before = filters.get(axis)
-            filters[axis] = keep if before is None else (lambda v, a=before, b=keep: a(v) and b(v))
+            filters[axis] = keep if before is None else (lambda *v, a=before, b=keep: a(*v) and b(*v))
         fn.diffquat_filters = filters  # type: ignore[attr-defined]
         return fn
 
@@ -299,3 +806,6 @@ gradients = only(backend=lambda b: b in ("torch", "jax"), dtype=lambda d: d == G
 torch_only = only(backend=lambda b: b == "torch")
 jax_only = only(backend=lambda b: b == "jax")
 edge_cases = only(case=lambda c: c.name in EDGE_CASES)
+# Where the op is differentiable (e.g. not where a rotation vector jumps at pi): for the numerical
+# derivative checks (gradcheck, check_grads), which cannot pass across a jump.
+smooth = only(pair=lambda op, case: op.smooth_at(case))

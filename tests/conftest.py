@@ -97,10 +97,11 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
     if "case" in names:
         axes.append(("case", CASES, lambda case: case.name))
     axes = [(a, [v for v in values if keep.get(a, lambda v: True)(v)], fmt) for a, values, fmt in axes]
+    pair = keep.get("pair", lambda op, case: True)
     argnames = [a for a, _, _ in axes]
     combos = list(itertools.product(*(values for _, values, _ in axes)))
     if "op" in argnames and "case" in argnames:
         i, j = argnames.index("op"), argnames.index("case")
-        combos = [c for c in combos if c[i].applies(c[j])]
+        combos = [c for c in combos if c[i].applies(c[j]) and pair(c[i], c[j])]
     ids = ["-".join(fmt(v) for (_, _, fmt), v in zip(axes, combo, strict=True)) for combo in combos]
     metafunc.parametrize(argnames, combos, ids=ids, indirect=["backend"])

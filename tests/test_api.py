@@ -12,7 +12,15 @@ import pytest
 from cases import NOT_IN_TABLE, OPS, Op, uniform_quaternions
 from conftest import BACKENDS, Backend
 
+from diffquat._backend import format_shape
 from diffquat._core import SHAPES
+
+N_POINTS = 5  # the size given to a "-1" (any size, e.g. N points) in a registered trailing shape
+
+
+def concrete(trailing: tuple[int, ...]) -> tuple[int, ...]:
+    return tuple(N_POINTS if n == -1 else n for n in trailing)
+
 
 # The one place where the backends' signatures may differ: the random source is the framework's own.
 RANDOM_SOURCE = {"numpy": {"rng"}, "torch": {"generator", "device"}, "jax": {"key"}}
@@ -55,19 +63,25 @@ def test_every_public_function_is_documented_with_its_shapes(backend: Backend) -
 
 
 def wrong_shapes(trailing: tuple[int, ...]) -> list[tuple[int, ...]]:
-    """Shapes a caller gets wrong: the last dimension off by one, and too few dimensions."""
-    return [(2, *trailing[:-1], trailing[-1] + 1), trailing[1:] or (trailing[0] + 1,)]
+    """Shapes a caller gets wrong: the last dimension off by one (unless it may be any size), and too
+    few dimensions. An argument with no trailing dimensions (e.g. slerp's ``t``) accepts every shape:
+    there is nothing to get wrong."""
+    if not trailing:
+        return []
+    size = concrete(trailing)
+    too_few = size[1:] or ((size[0] + 1,) if trailing[0] != -1 else ())
+    return ([(2, *size[:-1], size[-1] + 1)] if trailing[-1] != -1 else []) + [too_few]
 
 
 def test_bad_shape_raises_naming_the_function_and_the_shapes(op: Op, backend: Backend) -> None:
     trailing = list(SHAPES[op.name].values())
     for i, t in enumerate(trailing):
         for wrong in wrong_shapes(t):
-            args = [backend.array(np.zeros((2, *s)), "float64") for s in trailing]
+            args = [backend.array(np.zeros((2, *concrete(s))), "float64") for s in trailing]
             args[i] = backend.array(np.zeros(wrong), "float64")
             with pytest.raises(ValueError) as err:
                 op(backend.module, *args)
-            for fragment in (f"{op.name}:", "(..., " + ", ".join(map(str, t)) + ")", f"got shape {wrong}"):
+            for fragment in (f"{op.name}:", format_shape(t), f"got shape {wrong}"):
                 assert fragment in str(err.value)
 
 
@@ -87,8 +101,8 @@ def integer_array(backend: Backend, shape: tuple[int, ...]) -> object:
 def test_non_floating_input_raises_type_error(op: Op, backend: Backend) -> None:
     trailing = list(SHAPES[op.name].values())
     for i, t in enumerate(trailing):
-        args = [backend.array(np.zeros((2, *s)), "float64") for s in trailing]
-        args[i] = integer_array(backend, (2, *t))
+        args = [backend.array(np.zeros((2, *concrete(s))), "float64") for s in trailing]
+        args[i] = integer_array(backend, (2, *concrete(t)))
         with pytest.raises(TypeError, match=f"{op.name}.*floating"):
             op(backend.module, *args)
 

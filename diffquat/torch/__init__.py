@@ -8,16 +8,38 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from .. import _core
+from .. import _algebra, _core, _euler
+from .. import _representations as _rep
 from .._backend import Backend, documented, shape_tuple
 from . import _fused
+from ._custom import custom_derivative
 
 __all__ = [
+    "axis_angle_to_matrix",
+    "axis_angle_to_quaternion",
+    "euler_angles_to_matrix",
+    "euler_angles_to_quaternion",
+    "fit_rotation",
+    "matrix_geodesic_distance",
+    "matrix_to_axis_angle",
+    "matrix_to_euler_angles",
     "matrix_to_quaternion",
+    "matrix_to_rotation_6d",
     "normalize_quaternion",
+    "quaternion_apply",
+    "quaternion_conjugate",
+    "quaternion_geodesic_distance",
+    "quaternion_invert",
+    "quaternion_multiply",
+    "quaternion_slerp",
+    "quaternion_to_axis_angle",
+    "quaternion_to_euler_angles",
     "quaternion_to_matrix",
     "random_quaternions",
+    "rotation_6d_to_matrix",
+    "special_procrustes",
     "standardize_quaternion",
+    "symmetric_matrix_to_quaternion",
     "wxyz_to_xyzw",
     "xyzw_to_wxyz",
 ]
@@ -70,6 +92,136 @@ def xyzw_to_wxyz(q: Tensor) -> Tensor:
     return _B(_core.xyzw_to_wxyz, q)
 
 
+# The SVD and eigh maps with their closed-form derivatives (see diffquat._representations).
+_special_procrustes = custom_derivative(
+    _rep.special_procrustes, _rep.procrustes_tangent, _rep.procrustes_cotangent
+)
+_smallest_eigenvector = custom_derivative(
+    _rep.smallest_eigenvector, _rep.eigenvector_tangent, _rep.eigenvector_cotangent
+)
+
+
+@documented(_rep.rotation_6d_to_matrix)
+def rotation_6d_to_matrix(d6: Tensor) -> Tensor:
+    return _B(_rep.rotation_6d_to_matrix, d6)
+
+
+@documented(_rep.matrix_to_rotation_6d)
+def matrix_to_rotation_6d(matrix: Tensor) -> Tensor:
+    return _B(_rep.matrix_to_rotation_6d, matrix)
+
+
+@documented(_rep.special_procrustes)
+def special_procrustes(matrix: Tensor) -> Tensor:
+    return _B(_special_procrustes, matrix)
+
+
+@documented(_rep.symmetric_matrix_to_quaternion)
+def symmetric_matrix_to_quaternion(a: Tensor, *, scalar_first: bool = True) -> Tensor:
+    return _B(
+        _rep.symmetric_matrix_to_quaternion, a, scalar_first=scalar_first, eigenvector=_smallest_eigenvector
+    )
+
+
+@documented(_rep.fit_rotation)
+def fit_rotation(source: Tensor, target: Tensor, weights: Tensor | None = None) -> Tensor:
+    return _B(_rep.fit_rotation, source, target, weights, procrustes=_special_procrustes)
+
+
+# Rotation vector, Euler angles, quaternion algebra, interpolation and distances.
+
+
+@documented(_algebra.axis_angle_to_quaternion)
+def axis_angle_to_quaternion(axis_angle: Tensor, *, scalar_first: bool = True) -> Tensor:
+    return _B(_algebra.axis_angle_to_quaternion, axis_angle, scalar_first=scalar_first)
+
+
+@documented(_algebra.quaternion_to_axis_angle)
+def quaternion_to_axis_angle(q: Tensor, *, scalar_first: bool = True) -> Tensor:
+    return _B(_algebra.quaternion_to_axis_angle, q, scalar_first=scalar_first)
+
+
+@documented(_algebra.axis_angle_to_matrix)
+def axis_angle_to_matrix(axis_angle: Tensor) -> Tensor:
+    return _B(_algebra.axis_angle_to_matrix, axis_angle)
+
+
+@documented(_algebra.matrix_to_axis_angle)
+def matrix_to_axis_angle(matrix: Tensor) -> Tensor:
+    return _B(_algebra.matrix_to_axis_angle, matrix)
+
+
+@documented(_euler.euler_angles_to_matrix)
+def euler_angles_to_matrix(angles: Tensor, convention: str, *, degrees: bool = False) -> Tensor:
+    return _B(_euler.euler_angles_to_matrix, angles, convention=convention, degrees=degrees)
+
+
+@documented(_euler.matrix_to_euler_angles)
+def matrix_to_euler_angles(matrix: Tensor, convention: str, *, degrees: bool = False) -> Tensor:
+    return _B(_euler.matrix_to_euler_angles, matrix, convention=convention, degrees=degrees)
+
+
+@documented(_euler.euler_angles_to_quaternion)
+def euler_angles_to_quaternion(
+    angles: Tensor, convention: str, *, degrees: bool = False, scalar_first: bool = True
+) -> Tensor:
+    return _B(
+        _euler.euler_angles_to_quaternion,
+        angles,
+        convention=convention,
+        degrees=degrees,
+        scalar_first=scalar_first,
+    )
+
+
+@documented(_euler.quaternion_to_euler_angles)
+def quaternion_to_euler_angles(
+    q: Tensor, convention: str, *, degrees: bool = False, scalar_first: bool = True
+) -> Tensor:
+    return _B(
+        _euler.quaternion_to_euler_angles,
+        q,
+        convention=convention,
+        degrees=degrees,
+        scalar_first=scalar_first,
+    )
+
+
+@documented(_algebra.quaternion_multiply)
+def quaternion_multiply(p: Tensor, q: Tensor, *, scalar_first: bool = True) -> Tensor:
+    return _B(_algebra.quaternion_multiply, p, q, scalar_first=scalar_first)
+
+
+@documented(_algebra.quaternion_conjugate)
+def quaternion_conjugate(q: Tensor, *, scalar_first: bool = True) -> Tensor:
+    return _B(_algebra.quaternion_conjugate, q, scalar_first=scalar_first)
+
+
+@documented(_algebra.quaternion_invert)
+def quaternion_invert(q: Tensor, *, scalar_first: bool = True) -> Tensor:
+    return _B(_algebra.quaternion_invert, q, scalar_first=scalar_first)
+
+
+@documented(_algebra.quaternion_apply)
+def quaternion_apply(q: Tensor, v: Tensor, *, scalar_first: bool = True) -> Tensor:
+    return _B(_algebra.quaternion_apply, q, v, scalar_first=scalar_first)
+
+
+@documented(_algebra.quaternion_slerp)
+def quaternion_slerp(p: Tensor, q: Tensor, t: Tensor, *, scalar_first: bool = True) -> Tensor:
+    return _B(_algebra.quaternion_slerp, p, q, t, scalar_first=scalar_first)
+
+
+@documented(_algebra.quaternion_geodesic_distance)
+def quaternion_geodesic_distance(p: Tensor, q: Tensor, *, scalar_first: bool = True) -> Tensor:
+    return _B(_algebra.quaternion_geodesic_distance, p, q, scalar_first=scalar_first)
+
+
+@documented(_algebra.matrix_geodesic_distance)
+def matrix_geodesic_distance(matrix1: Tensor, matrix2: Tensor) -> Tensor:
+    return _B(_algebra.matrix_geodesic_distance, matrix1, matrix2)
+
+
 def random_quaternions(
     shape: int | tuple[int, ...] = (),
     *,
@@ -91,4 +243,5 @@ def random_quaternions(
     uniform = torch.rand(
         (*shape_tuple(shape), 3), generator=generator, dtype=_B.compute_dtype(dtype), device=device
     )
-    return _B(_core.quaternions_from_uniform, uniform, scalar_first=scalar_first).to(dtype)
+    q = _B(_core.quaternions_from_uniform, uniform, scalar_first=scalar_first)
+    return _B.cast_canonical(q, dtype, scalar_first)

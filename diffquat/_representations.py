@@ -1,0 +1,327 @@
+"""Representations for neural-network outputs (6D, 9D, 10D) and point-set fitting, over ``xp``.
+
+The 9D and 10D maps go through an SVD or an eigendecomposition, whose library backward passes divide
+by differences of singular values or eigenvalues and blow up exactly where these maps are smooth
+(the identity has three equal singular values). Their derivatives are therefore written here, once,
+in closed forms that only divide where the map itself is singular, and the backends register them as
+custom derivatives (``_procrustes_tangent``/``_cotangent``, ``_eigenvector_tangent``/``_cotangent``).
+The formulas are written in terms of the *output* and the input with differentiable operations
+only, so differentiating the backward again (double backward, ``jacfwd`` of ``grad``) is exact too.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from ._core import canonical, join_quaternion, op, split_quaternion, stack_matrix, standardize_quaternion
+
+# ---------------------------------------------------------------------------------------------------
+# 6D (Zhou et al., CVPR 2019)
+
+
+def _dot(xp: Any, a: Any, b: Any) -> Any:
+    return xp.sum(a * b, axis=-1, keepdims=True)
+
+
+def _cross(xp: Any, a: Any, b: Any) -> Any:
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return xp.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+def _normalize_or(xp: Any, v: Any, n2: Any, degenerate: Any, fallback: Any) -> Any:
+    """``v / sqrt(n2)``, or ``fallback`` where ``degenerate``; finite gradients in both branches."""
+    safe = xp.where(degenerate, 1.0, n2)  # the discarded branch never sees 1/sqrt(0)
+    return xp.where(degenerate[..., None], fallback, v / xp.sqrt(safe)[..., None])
+
+
+@op(d6=(6,))
+def rotation_6d_to_matrix(xp: Any, d6: Any) -> Any:
+    """Rotation matrix from the 6D representation of Zhou et al. (CVPR 2019), by Gram-Schmidt.
+
+    Args:
+        d6: shape ``(..., 6)``: two 3-vectors ``(a1, a2)``, the unnormalised first two **columns** of
+            the matrix, as in the paper. Note: pytorch3d's ``rotation_6d_to_matrix`` reads them as the
+            first two **rows**, so its matrices are the transposes of these (a silent transpose for
+            code that migrates): ``pytorch3d_R == diffquat_R.transpose(-1, -2)`` for the same ``d6``.
+
+    Returns:
+        Rotation matrices, shape ``(..., 3, 3)``, columns ``b1 = a1/|a1|``, ``b2`` = the normalised
+        part of ``a2`` orthogonal to ``b1``, ``b3 = b1 x b2``.
+
+    Degenerate input never raises and has finite gradients: where ``|a1|^2`` is below the smallest
+    normal number, ``b1 = (1, 0, 0)``; where the part of ``a2`` orthogonal to ``b1`` is below
+    machine epsilon times ``|a2|`` (``a2`` zero or parallel to ``a1``), ``b2`` is the unit vector
+    orthogonal to ``b1`` in the plane of ``b1`` and the coordinate axis least aligned with ``b1``
+    (the first such axis on ties). So the zero vector gives the identity.
+    """
+    a1, a2 = d6[..., 0:3], d6[..., 3:6]
+    info = xp.finfo(d6.dtype)
+    n1 = xp.sum(a1 * a1, axis=-1)
+    zero1 = n1 < info.tiny
+    ex = xp.stack([xp.ones_like(n1), xp.zeros_like(n1), xp.zeros_like(n1)], axis=-1)
+    b1 = _normalize_or(xp, a1, n1, zero1, ex)
+    u2 = a2 - _dot(xp, b1, a2) * b1
+    n_u2, n_a2 = xp.sum(u2 * u2, axis=-1), xp.sum(a2 * a2, axis=-1)
+    parallel = n_u2 <= (info.eps * info.eps) * n_a2 + info.tiny
+    # Fallback for b2: Gram-Schmidt of the axis e_k with the smallest |b1_k| (<= 1/sqrt(3), so the
+    # residual has norm >= sqrt(2/3) and this branch never divides by a small number).
+    m = xp.abs(b1)
+    k0 = (m[..., 0] <= m[..., 1]) & (m[..., 0] <= m[..., 2])
+    k1 = (~k0) & (m[..., 1] <= m[..., 2])
+    one, nil = xp.ones_like(n1), xp.zeros_like(n1)
+    e = xp.stack([xp.where(k0, one, nil), xp.where(k1, one, nil), xp.where(k0 | k1, nil, one)], axis=-1)
+    f = e - _dot(xp, b1, e) * b1
+    f = f / xp.sqrt(xp.sum(f * f, axis=-1, keepdims=True))
+    b2 = _normalize_or(xp, u2, n_u2, parallel, f)
+    b3 = _cross(xp, b1, b2)
+    return xp.stack([b1, b2, b3], axis=-1)
+
+
+@op(matrix=(3, 3))
+def matrix_to_rotation_6d(xp: Any, matrix: Any) -> Any:
+    """The 6D representation of Zhou et al. (CVPR 2019): the first two **columns** of the matrix.
+
+    Args:
+        matrix: shape ``(..., 3, 3)``.
+
+    Returns:
+        Shape ``(..., 6)``: ``(R[:, 0], R[:, 1])``, i.e. ``(R00, R10, R20, R01, R11, R21)``. pytorch3d's
+        ``matrix_to_rotation_6d`` takes the first two rows instead (the transpose). For a rotation
+        matrix, ``rotation_6d_to_matrix`` of the result gives the matrix back.
+    """
+    return xp.concat([matrix[..., :, 0], matrix[..., :, 1]], axis=-1)
+
+
+# ---------------------------------------------------------------------------------------------------
+# 9D (Levinson et al., NeurIPS 2020): the special orthogonal Procrustes problem
+
+
+def _transpose(xp: Any, m: Any) -> Any:
+    return xp.swapaxes(m, -1, -2)
+
+
+def _hat(xp: Any, z: Any) -> Any:
+    z0, z1, z2 = z[..., 0], z[..., 1], z[..., 2]
+    nil = xp.zeros_like(z0)
+    return stack_matrix(xp, [nil, -z2, z1, z2, nil, -z0, -z1, z0, nil])
+
+
+def _vee_antisymmetric(m: Any) -> Any:
+    """vee(m - m^T) as a 3-vector (stacked by the caller)."""
+    return m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]
+
+
+def _procrustes_solve(xp: Any, rotation: Any, matrix: Any, x: Any) -> Any:
+    """``R hat(z)`` with ``z = (tr(P) I - P + delta I)^{-1} vee(R^T X - X^T R)``, ``P = sym(R^T M)``.
+
+    This is the derivative of the Procrustes map in both directions (X = dM gives dR; X = the
+    cotangent of R gives the cotangent of M). Why: R^T M = P is symmetric, so R^T dM - dM^T R =
+    Omega P + P Omega with dR = R Omega, Omega = hat(w), and Omega P + P Omega = hat((tr(P) I - P) w)
+    for symmetric P. In the basis of M's right singular vectors, tr(P) I - P is diagonal with entries
+    s_i + s_j (i != j; the smallest singular value carries the sign of the determinant fix): the
+    usual 1/(s_i + s_j) terms, and no 1/(s_i - s_j), so equal singular values are harmless.
+
+    Epsilon: ``delta = sqrt(eps) * tr(P)`` (1 where tr(P) < sqrt(tiny): M = 0) is added to every
+    s_i + s_j. It changes the derivative by a relative ``sqrt(eps) * s_1 / (s_i + s_j)`` (1e-8 in
+    float64 where M is well conditioned) and bounds its norm by about ``2 |X| / delta``, i.e.
+    ``2 |X| / (sqrt(eps) s_1)``, where s_i + s_j vanishes: M of rank <= 1, or det(M) < 0 with
+    s_2 = s_3, where the nearest rotation is not unique and no derivative exists.
+    """
+    info = xp.finfo(matrix.dtype)
+    rt = _transpose(xp, rotation)
+    p = xp.matmul(rt, matrix)
+    p = 0.5 * (p + _transpose(xp, p))
+    trace = p[..., 0, 0] + p[..., 1, 1] + p[..., 2, 2]
+    floor = info.tiny**0.5
+    # The zero matrix (no direction defined at all) gets delta = 1: a bounded, not a huge, gradient.
+    delta = xp.where(trace > floor, info.eps**0.5 * trace, 1.0)
+    b = stack_matrix(
+        xp,
+        [
+            trace - p[..., 0, 0] + delta, -p[..., 0, 1], -p[..., 0, 2],
+            -p[..., 1, 0], trace - p[..., 1, 1] + delta, -p[..., 1, 2],
+            -p[..., 2, 0], -p[..., 2, 1], trace - p[..., 2, 2] + delta,
+        ],
+    )  # fmt: skip
+    rhs = xp.stack(_vee_antisymmetric(xp.matmul(rt, x)), axis=-1)
+    z = xp.linalg.solve(b, rhs[..., None])[..., 0]
+    return xp.matmul(rotation, _hat(xp, z))
+
+
+def procrustes_tangent(xp: Any, matrix: Any, rotation: Any, tangent: Any) -> Any:
+    """Forward-mode derivative of :func:`special_procrustes`: dR for dM = ``tangent``."""
+    return _procrustes_solve(xp, rotation, matrix, tangent)
+
+
+def procrustes_cotangent(xp: Any, matrix: Any, rotation: Any, cotangent: Any) -> Any:
+    """Reverse-mode derivative of :func:`special_procrustes`: dL/dM for dL/dR = ``cotangent``.
+
+    The linear map dM -> dR is self-adjoint up to the map dM -> R^T dM, so the same solve serves
+    (see :func:`_procrustes_solve`)."""
+    return _procrustes_solve(xp, rotation, matrix, cotangent)
+
+
+@op(matrix=(3, 3))
+def special_procrustes(xp: Any, matrix: Any) -> Any:
+    """The rotation nearest to a 3x3 matrix (special orthogonal Procrustes; the 9D representation of
+    Levinson et al., NeurIPS 2020).
+
+    Args:
+        matrix: any real matrices, shape ``(..., 3, 3)``.
+
+    Returns:
+        Shape ``(..., 3, 3)``: ``U diag(1, 1, det(U V^T)) V^T`` for ``M = U diag(s) V^T``, the rotation R
+        that minimises ``|R - M|_F`` (equivalently maximises ``tr(R^T M)``). The zero matrix gives the
+        identity (the SVD of zero is the identity in LAPACK, cuSOLVER and XLA).
+
+    Gradients (torch and jax) use a closed-form derivative with the usual ``1/(s_i + s_j)`` terms,
+    never ``1/(s_i - s_j)``: finite, and correct, at repeated singular values (the identity) and at
+    rank 2. Where the nearest rotation is not unique (rank <= 1, or det(M) < 0 with the two smallest
+    singular values equal) the derivative is regularised by ``sqrt(eps) * tr(R^T M)`` added to each
+    denominator: finite and bounded by about ``2 |dL/dR| / (sqrt(eps) s_1)`` (by ``|dL/dR|`` for M = 0).
+    """
+    u, _, vh = xp.linalg.svd(matrix)
+    # det(U V^T) = +-1; only its sign matters, and the product of the determinants is exact enough.
+    flip = xp.linalg.det(u) * xp.linalg.det(vh) < 0
+    last = xp.where(flip[..., None, None], -u[..., :, 2:3], u[..., :, 2:3])
+    return xp.matmul(xp.concat([u[..., :, 0:2], last], axis=-1), vh)
+
+
+# ---------------------------------------------------------------------------------------------------
+# 10D (Peretroukhin et al., RSS 2020)
+
+_UPPER = ((0, 0), (0, 1), (0, 2), (0, 3), (1, 1), (1, 2), (1, 3), (2, 2), (2, 3), (3, 3))
+_XYZW = (3, 0, 1, 2)  # the position of w, x, y, z in scalar-last storage
+_INDEX = {ij: k for k, ij in enumerate(_UPPER)} | {(j, i): k for k, (i, j) in enumerate(_UPPER)}
+
+
+def _symmetric(xp: Any, a: Any) -> Any:
+    """The symmetric 4x4 matrix of a ``(..., 10)`` upper triangle (row by row)."""
+    flat = xp.stack([a[..., _INDEX[(i, j)]] for i in range(4) for j in range(4)], axis=-1)
+    return xp.reshape(flat, (*flat.shape[:-1], 4, 4))
+
+
+def _upper(xp: Any, g: Any) -> Any:
+    """Adjoint of :func:`_symmetric`: the gradient of the 10 entries from that of the 4x4 matrix."""
+    return xp.stack([g[..., i, j] + g[..., j, i] if i != j else g[..., i, i] for i, j in _UPPER], axis=-1)
+
+
+def _resolvent(xp: Any, a: Any, q: Any, v: Any) -> Any:
+    """``-Pi (A - l0 I + delta I)^{-1} Pi v`` with ``Pi = I - q q^T``, ``l0 = q^T A q``: minus the
+    pseudo-inverse of ``A - l0 I`` (eigenvalues l_j - l0 off q), regularised.
+
+    Epsilon: ``delta = sqrt(eps) * sum|a|`` (1 where sum|a| < sqrt(tiny): A = 0) is added to every
+    gap l_j - l0. It changes the derivative by a relative ``delta / (l_j - l0)`` and bounds it by
+    ``|v| / delta`` where the smallest eigenvalue is repeated (and the eigenvector, so the
+    derivative, is not defined)."""
+    info = xp.finfo(a.dtype)
+    mat = _symmetric(xp, a)
+    l0 = _dot(xp, q, xp.matmul(mat, q[..., None])[..., 0])
+    size = xp.sum(xp.abs(a), axis=-1, keepdims=True)
+    # A = 0 (no eigenvector defined at all) gets delta = 1: a bounded, not a huge, gradient.
+    delta = xp.where(size > info.tiny**0.5, info.eps**0.5 * size, 1.0)
+    # C = A + (delta - l0) I, built entrywise (no eye: jax's strict rank promotion).
+    shift = (delta - l0)[..., 0]
+    flat = xp.stack(
+        [mat[..., i, j] + shift if i == j else mat[..., i, j] for i in range(4) for j in range(4)], axis=-1
+    )
+    c = xp.reshape(flat, (*flat.shape[:-1], 4, 4))
+    pv = v - _dot(xp, q, v) * q
+    w = xp.linalg.solve(c, pv[..., None])[..., 0]
+    return -(w - _dot(xp, q, w) * q)
+
+
+def eigenvector_tangent(xp: Any, a: Any, q: Any, tangent: Any) -> Any:
+    """dq for da = ``tangent``: ``dq = -(A - l0 I)^+ dA q`` (first-order perturbation theory)."""
+    da = _symmetric(xp, tangent)
+    return _resolvent(xp, a, q, xp.matmul(da, q[..., None])[..., 0])
+
+
+def eigenvector_cotangent(xp: Any, a: Any, q: Any, cotangent: Any) -> Any:
+    """dL/da for dL/dq = ``cotangent``: ``dL/dA = -((A - l0 I)^+ g) q^T``, folded onto the 10 entries."""
+    k = _resolvent(xp, a, q, cotangent)
+    return _upper(xp, k[..., :, None] * q[..., None, :])
+
+
+def smallest_eigenvector(xp: Any, a: Any) -> Any:
+    """Unit eigenvector of the smallest eigenvalue of the symmetric matrix of ``a`` (sign: eigh's)."""
+    _, vectors = xp.linalg.eigh(_symmetric(xp, a))
+    return vectors[..., :, 0]
+
+
+@canonical
+@op(a=(10,))
+def symmetric_matrix_to_quaternion(
+    xp: Any,
+    a: Any,
+    *,
+    scalar_first: bool = True,
+    eigenvector: Callable[[Any, Any], Any] = smallest_eigenvector,
+) -> Any:
+    """Unit quaternion from the 10D representation of Peretroukhin et al. (RSS 2020).
+
+    Args:
+        a: shape ``(..., 10)``: the upper triangle of a symmetric 4x4 matrix A, row by row
+            ``(a00, a01, a02, a03, a11, a12, a13, a22, a23, a33)``. A's rows and columns are indexed
+            in the storage order of the quaternion (w, x, y, z if ``scalar_first``, else x, y, z, w),
+            so the result minimises ``q^T A q`` over unit q in the order you store q.
+        scalar_first: storage order of the result (and of A's indices).
+
+    Returns:
+        Unit quaternions, shape ``(..., 4)``: the eigenvector of A's smallest eigenvalue, in
+        canonical sign. Where that eigenvalue is repeated (e.g. A = 0) the eigenvector is whichever
+        the backend's ``eigh`` returns (for A = 0: the identity quaternion).
+
+    Gradients (torch and jax) use first-order perturbation theory, ``dq = -(A - l0 I)^+ dA q``,
+    which divides only by the gaps ``l_j - l0`` to the smallest eigenvalue (never by the gaps
+    between the other eigenvalues): each gap is regularised by adding ``sqrt(eps) * sum|a|`` (1 for
+    A = 0), which bounds the gradient where the smallest eigenvalue is repeated.
+    """
+    if not scalar_first:
+        # Re-index A from (x, y, z, w) to (w, x, y, z) (a gather, exact), so that both orders run the
+        # very same computation and give bit-identical results.
+        a = xp.stack([a[..., _INDEX[(_XYZW[i], _XYZW[j])]] for i, j in _UPPER], axis=-1)
+    w, x, y, z = split_quaternion(eigenvector(xp, a), True)
+    return standardize_quaternion(
+        xp, join_quaternion(xp, w, x, y, z, scalar_first), scalar_first=scalar_first
+    )
+
+
+# ---------------------------------------------------------------------------------------------------
+# Fitting (Wahba's problem)
+
+
+@op(source=(-1, 3), target=(-1, 3), weights=(-1,))
+def fit_rotation(
+    xp: Any,
+    source: Any,
+    target: Any,
+    weights: Any = None,
+    *,
+    procrustes: Callable[[Any, Any], Any] = special_procrustes,
+) -> Any:
+    """The rotation that best maps the points ``source`` onto ``target`` (Wahba's problem, Kabsch).
+
+    Args:
+        source, target: shape ``(..., N, 3)``, leading dimensions broadcast against each other.
+        weights: shape ``(..., N)``, non-negative, or ``None`` for all ones.
+
+    Returns:
+        Shape ``(..., 3, 3)``: the rotation R that minimises ``sum_i w_i |R s_i - t_i|^2``, i.e.
+        :func:`special_procrustes` of ``sum_i w_i t_i s_i^T`` (determinant fixed: never a reflection).
+        scipy's equivalent is ``Rotation.align_vectors(target, source, weights)`` (note the order).
+        Its gradients are those of :func:`special_procrustes`.
+    """
+    n = source.shape[-2]
+    if target.shape[-2] != n or (weights is not None and weights.shape[-1] != n):
+        got = [tuple(source.shape), tuple(target.shape)] + ([] if weights is None else [tuple(weights.shape)])
+        raise ValueError(f"fit_rotation: expected the same number of points N in every argument, got {got}")
+    shapes = [source.shape[:-2], target.shape[:-2]] + ([] if weights is None else [weights.shape[:-1]])
+    batch = tuple(xp.broadcast_shapes(*shapes))
+    source = xp.broadcast_to(source, (*batch, n, 3))
+    target = xp.broadcast_to(target, (*batch, n, 3))
+    if weights is not None:
+        target = target * xp.broadcast_to(weights, (*batch, n))[..., None]
+    return procrustes(xp, xp.matmul(_transpose(xp, target), source))
