@@ -109,11 +109,26 @@ def quaternion_invert(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
         Shape ``(..., 4)``, norm ``1 / |q|``.
     """
     w, x, y, z = split_quaternion(q, scalar_first)
+    nonzero = w * w + x * x + y * y + z * z >= xp.finfo(q.dtype).tiny
+    # Scaled by m = max |q_i| first: the result grows as 1/|q|, so on a chain through n2 = |q|^2 the
+    # derivative reaches |q|^-3 (1e45 at |q| = 1e-15, past float32). With p = q / m, |p|^2 lies in
+    # [1, 4] and the largest intermediate derivative is 1/m^2. conj(q) / |q|^2 = conj(p) / (m |p|^2).
+    # Double wheres: the discarded branch divides by 1, so everything stays finite at q = 0.
+    m = xp.maximum(xp.maximum(xp.abs(w), xp.abs(x)), xp.maximum(xp.abs(y), xp.abs(z)))
+    inv_m = xp.where(nonzero, 1.0 / xp.where(nonzero, m, 1.0), 0.0)
+    w, x, y, z = w * inv_m, x * inv_m, y * inv_m, z * inv_m
+    n2 = w * w + x * x + y * y + z * z
+    s = xp.where(nonzero, inv_m / xp.where(nonzero, n2, 1.0), 0.0)
+    return join_quaternion(xp, w * s, -x * s, -y * s, -z * s, scalar_first)
     n2 = w * w + x * x + y * y + z * z
     nonzero = n2 >= xp.finfo(n2.dtype).tiny
-    # Double where: the discarded branch divides by 1, so 1 / n2 and its derivative stay finite at 0.
-    s = xp.where(nonzero, 1.0 / xp.where(nonzero, n2, 1.0), 0.0)
-    return join_quaternion(xp, w * s, -x * s, -y * s, -z * s, scalar_first)
+    # Through 1/|q| twice, not 1/|q|^2 once: d(1/n2)/dn2 = -1/n2^2 on the reverse chain overflows
+    # float32 for |q| below ~3e-10 (see quaternion_to_matrix). Double where: the discarded branch
+    # sees n2 = 1, so 1/sqrt and its derivative stay finite at 0.
+    inv = xp.where(nonzero, 1.0 / xp.sqrt(xp.where(nonzero, n2, 1.0)), 0.0)
+    return join_quaternion(
+        xp, (w * inv) * inv, -(x * inv) * inv, -(y * inv) * inv, -(z * inv) * inv, scalar_first
+    )
 
 
 @op(q=(4,), v=(3,))
@@ -134,8 +149,12 @@ def quaternion_apply(xp: Any, q: Any, v: Any, *, scalar_first: bool = True) -> A
     vx, vy, vz = v[..., 0], v[..., 1], v[..., 2]
     n2 = w * w + x * x + y * y + z * z
     nonzero = n2 >= xp.finfo(n2.dtype).tiny
-    s = xp.where(nonzero, 2.0 / xp.where(nonzero, n2, 1.0), 0.0)
-    # v' = v + (2 / |q|^2) (w (u x v) + u x (u x v)), u = (x, y, z): no matrix is formed.
+    # Normalise first (see quaternion_to_matrix: 2 / n2 overflows float32 gradients at small |q|);
+    # the zero quaternion gets inv = 0, so v comes back unchanged.
+    inv = xp.where(nonzero, 1.0 / xp.sqrt(xp.where(nonzero, n2, 1.0)), 0.0)
+    w, x, y, z = w * inv, x * inv, y * inv, z * inv
+    s = 2.0
+    # v' = v + 2 (w (u x v) + u x (u x v)), (w, u) the unit quaternion: no matrix is formed.
     cx, cy, cz = y * vz - z * vy, z * vx - x * vz, x * vy - y * vx
     tx, ty, tz = w * cx + (y * cz - z * cy), w * cy + (z * cx - x * cz), w * cz + (x * cy - y * cx)
     return xp.stack([vx + s * tx, vy + s * ty, vz + s * tz], axis=-1)
