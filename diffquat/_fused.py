@@ -6,8 +6,8 @@ the same maps as a few whole-array steps driven by the constant index tables her
 
 - ``quaternion_to_matrix``: every entry of ``R`` is ``base + sign_1 P[a_1, b_1] + sign_2 P[a_2, b_2]``
   with ``P = (s q) q^T`` and ``s = 2 / |q|^2``: one outer product, one gather of 18 products, one sum.
-  The products are the ones the core forms (``(s x) y``, not ``(s y) x``), so the values are bitwise
-  the core's.
+  The values agree with the core's to rounding (the core normalises ``q`` first, for float32
+  gradients at extreme norms; the fused backward is analytic and needs no such care).
 - ``matrix_to_quaternion``: the four candidates ``c_k = 4 q_k q`` of the core are the rows of one
   symmetric 4 x 4 matrix ``K``, each entry ``base + up to three signed entries of the matrix``.
 

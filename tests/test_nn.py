@@ -5,6 +5,7 @@ gradients, traces, and the torch layer and the jax pure functions have the same 
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -163,3 +164,105 @@ def test_unknown_representation_and_wrong_size_raise(backend: Backend) -> None:
         nn.representation_size("rot6d")
     with pytest.raises(ValueError, match=r"expected raw of shape \(\.\.\., 6\).*'6d', got shape \(2, 9\)"):
         nn.representation_to_matrix(backend.array(np.zeros((2, 9)), "float64"), "6d")
+
+
+def _flax_model(in_features: int, representation: str) -> tuple[Callable, Any, dict[str, Any]]:
+    """A two-layer flax (nnx) model ending in the rotation map; returns (apply(state, x), state, the
+    last layer's parameters as ``rotation_head`` takes them)."""
+    from flax import nnx
+
+    class Model(nnx.Module):
+        def __init__(self, rngs: nnx.Rngs) -> None:
+            self.hidden = nnx.Linear(in_features, 16, rngs=rngs, param_dtype=jnp.float64)
+            self.out = nnx.Linear(
+                16, jnn.representation_size(representation), rngs=rngs, param_dtype=jnp.float64
+            )
+
+        def features(self, x: Any) -> Any:
+            return jax.nn.tanh(self.hidden(x))
+
+        def __call__(self, x: Any) -> Any:
+            return jnn.representation_to_matrix(self.out(self.features(x)), representation)
+
+    graphdef, state = nnx.split(Model(nnx.Rngs(0)))
+
+    def apply(state: Any, x: Any) -> Any:
+        return nnx.merge(graphdef, state)(x)
+
+    def head_params(state: Any, x: Any) -> tuple[dict[str, Any], Any]:
+        model = nnx.merge(graphdef, state)
+        return {"w": model.out.kernel[...], "b": model.out.bias[...]}, model.features(x)
+
+    return apply, state, head_params
+
+
+def _equinox_model(in_features: int, representation: str) -> tuple[Callable, Any, Callable]:
+    import equinox as eqx
+
+    class Model(eqx.Module):
+        hidden: eqx.nn.Linear
+        out: eqx.nn.Linear
+
+        def __init__(self, key: Any) -> None:
+            k1, k2 = jax.random.split(key)
+            self.hidden = eqx.nn.Linear(in_features, 16, key=k1, dtype=jnp.float64)
+            self.out = eqx.nn.Linear(16, jnn.representation_size(representation), key=k2, dtype=jnp.float64)
+
+        def features(self, x: Any) -> Any:
+            return jax.nn.tanh(jax.vmap(self.hidden)(x))
+
+        def __call__(self, x: Any) -> Any:
+            # equinox layers act on one example: vmap over the batch, then the batched rotation map
+            return jnn.representation_to_matrix(jax.vmap(self.out)(self.features(x)), representation)
+
+    def apply(model: Any, x: Any) -> Any:
+        return model(x)
+
+    def head_params(model: Any, x: Any) -> tuple[dict[str, Any], Any]:
+        return {"w": model.out.weight.T, "b": model.out.bias}, model.features(x)
+
+    return apply, Model(jax.random.key(0)), head_params
+
+
+@pytest.mark.parametrize("representation", ["6d", "9d", "10d"])
+@pytest.mark.parametrize("framework", ["flax", "equinox"])
+def test_jax_heads_train_inside_flax_and_equinox_models(framework: str, representation: str) -> None:
+    """The jax heads are plain functions, so they sit at the end of a flax or equinox model: the model
+    equals ``rotation_head`` on its own last layer's parameters, and optax trains it through
+    ``jax.jit`` with a geodesic loss (the loss falls, the gradients are finite)."""
+    import optax
+
+    pytest.importorskip(framework)
+    import diffquat.jax as dq
+
+    make = _flax_model if framework == "flax" else _equinox_model
+    apply, params, head_params = make(5, representation)
+    rng = np.random.default_rng(4)
+    x = jnp.asarray(rng.normal(size=(32, 5)))
+    target = jnp.asarray(Rotation.random(32, random_state=5).as_matrix())
+
+    head, features = head_params(params, x)
+    np.testing.assert_allclose(
+        apply(params, x), jnn.rotation_head(head, features, representation), atol=1e-12
+    )
+
+    def loss(params: Any) -> Any:
+        return dq.matrix_geodesic_distance(apply(params, x), target).mean()
+
+    optimizer = optax.adam(3e-2)
+
+    @jax.jit
+    def step(params: Any, opt_state: Any) -> tuple[Any, Any, Any]:
+        value, grads = jax.value_and_grad(loss)(params)
+        # optax's bias correction mixes Python floats and int32 step counts (the suite runs jax with
+        # strict dtype promotion to keep diffquat's own code clean of implicit promotions)
+        with jax.numpy_dtype_promotion("standard"):
+            updates, opt_state = optimizer.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state, (value, grads)
+
+    opt_state = optimizer.init(params)
+    first = float(loss(params))
+    for _ in range(60):
+        params, opt_state, (_, grads) = step(params, opt_state)
+        assert all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree_util.tree_leaves(grads))
+    assert float(loss(params)) < 0.5 * first
