@@ -40,8 +40,16 @@ def test_torch_ddp_two_processes_give_the_single_process_loss(tmp_path: Path) ->
         subprocess.Popen(command("torch", str(rank), port, str(out)), stderr=subprocess.PIPE, text=True)
         for rank in range(w.WORLD)
     ]
+    # Wait for (and close the pipes of) every rank before asserting: an early failure must not leave a
+    # process and its pipe behind for the garbage collector to warn about in a later test.
+    errors = []
     for rank in ranks:
-        _, stderr = rank.communicate(timeout=300)
+        try:
+            errors.append(rank.communicate(timeout=300)[1])
+        except subprocess.TimeoutExpired:
+            rank.kill()
+            errors.append(rank.communicate()[1] + "\n(timed out)")
+    for rank, stderr in zip(ranks, errors, strict=True):
         assert rank.returncode == 0, stderr[-4000:]
     ddp = json.loads(out.read_text())
     model = w.pr.torch_model(w.CONFIG, w.REPRESENTATION)

@@ -38,6 +38,17 @@ def close(a: Any, b: Any) -> None:
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-12)
 
 
+def close_derivatives(a: Any, b: Any, op: Op, case: Case) -> None:
+    """Derivatives under a transform equal eager ones where the op is differentiable. At a kink (a
+    distance between antipodal rotations, |w| at w = 0) the derivative follows the sign or the
+    direction of a rounding error, which a compiler's reordering of the same arithmetic may change:
+    there, both must only be finite."""
+    if op.smooth_at(case):
+        close(a, b)
+    else:
+        assert np.all(np.isfinite(np.asarray(a))) and np.all(np.isfinite(np.asarray(b)))
+
+
 @transform_cases
 @torch_only
 @gradients
@@ -59,7 +70,7 @@ def test_torch_compile_fullgraph_forward_and_backward(
     for a, b in zip(
         torch.autograd.grad(comp, comp_in, cot), torch.autograd.grad(eager, eager_in, cot), strict=True
     ):
-        close(a, b)
+        close_derivatives(a, b, op, case)
 
 
 @transform_cases
@@ -76,11 +87,11 @@ def test_torch_func_vmap_grad_jacrev(op: Op, backend: Backend, dtype: str, case:
     expected = torch.autograd.grad(loss(*leaves), leaves)
     got = torch.func.grad(loss, argnums=tuple(range(len(ts))))(*ts)
     for a, b in zip(got, expected, strict=True):
-        close(a, b)
+        close_derivatives(a, b, op, case)
     # per-element Jacobians: jacrev under vmap equals jacrev of one element
     jac = torch.func.vmap(torch.func.jacrev(fn))(*ts)
     one = torch.func.jacrev(fn)(*(t[0] for t in ts))
-    close(jac[0], one)
+    close_derivatives(jac[0], one, op, case)
     assert torch.all(torch.isfinite(jac))
 
 
@@ -99,9 +110,9 @@ def test_jax_jit_vmap_grad_jacfwd(op: Op, backend: Backend, dtype: str, case: Ca
     g = jax.grad(loss, argnums=argnums)(*arrays)
     g_jit = jax.jit(jax.grad(loss, argnums=argnums))(*arrays)
     for a, b in zip(g_jit, g, strict=True):
-        close(a, b)
+        close_derivatives(a, b, op, case)
     # forward-mode per-element Jacobians equal reverse-mode ones
     fwd = jax.vmap(jax.jacfwd(fn))(*arrays)
     rev = jax.vmap(jax.jacrev(fn))(*arrays)
-    close(fwd, rev)
+    close_derivatives(fwd, rev, op, case)
     assert bool(jnp.all(jnp.isfinite(fwd)))
