@@ -130,33 +130,66 @@ def matrix_to_quaternion(xp: Any, matrix: Any, *, scalar_first: bool = True) -> 
     and the normalisation never divides by a small number; there is no square root of a pivot at all,
     so half-turns (where three pivots vanish) are as accurate and as smooth as any other rotation.
     """
+    pivots, candidates = _m2q_candidates(matrix, 1.0)
+    w, x, y, z = _m2q_select(xp, pivots, candidates)
+    inv = _m2q_scale(xp, w, x, y, z)
+    return join_quaternion(xp, w * inv, x * inv, y * inv, z * inv, scalar_first)
+
+
+def _m2q_candidates(matrix: Any, one: Any) -> tuple[tuple[Any, ...], list[tuple[Any, Any, Any, Any]]]:
+    """The pivots ``t_k = 4 q_k^2`` and the candidates ``c_k = 4 q_k q`` (w, x, y, z) of a matrix.
+
+    ``one`` is the constant of the pivots: 1 for a matrix, 0 for a tangent (the map is affine)."""
     m00, m01, m02 = matrix[..., 0, 0], matrix[..., 0, 1], matrix[..., 0, 2]
     m10, m11, m12 = matrix[..., 1, 0], matrix[..., 1, 1], matrix[..., 1, 2]
     m20, m21, m22 = matrix[..., 2, 0], matrix[..., 2, 1], matrix[..., 2, 2]
-    t0 = 1.0 + m00 + m11 + m22
-    t1 = 1.0 + m00 - m11 - m22
-    t2 = 1.0 - m00 + m11 - m22
-    t3 = 1.0 - m00 - m11 + m22
+    t0 = one + m00 + m11 + m22
+    t1 = one + m00 - m11 - m22
+    t2 = one - m00 + m11 - m22
+    t3 = one - m00 - m11 + m22
     # 4 q_i q_j for i != j, each from two entries.
     wx, wy, wz = m21 - m12, m02 - m20, m10 - m01
     xy, xz, yz = m01 + m10, m02 + m20, m12 + m21
-    # Select the candidate of the largest pivot (ties go to the lower index). Every candidate is finite,
-    # so the selection is safe for reverse mode, and it happens before the one division below.
+    candidates = [(t0, wx, wy, wz), (wx, t1, xy, xz), (wy, xy, t2, yz), (wz, xz, yz, t3)]
+    return (t0, t1, t2, t3), candidates
+
+
+def _m2q_select(
+    xp: Any, pivots: tuple[Any, ...], candidates: list[tuple[Any, Any, Any, Any]]
+) -> tuple[Any, Any, Any, Any]:
+    """Components (w, x, y, z) of the candidate of the largest pivot (ties go to the lower index).
+    Every candidate is finite, so the selection is safe for reverse mode, and it happens before the
+    one division."""
+    t0, t1, t2, t3 = pivots
     use01 = xp.maximum(t0, t1) >= xp.maximum(t2, t3)
     use0, use2 = t0 >= t1, t2 >= t3
 
-    def pick(c0: Any, c1: Any, c2: Any, c3: Any) -> Any:
+    def pick(i: int) -> Any:
+        c0, c1, c2, c3 = (candidate[i] for candidate in candidates)
         return xp.where(use01, xp.where(use0, c0, c1), xp.where(use2, c2, c3))
 
-    w = pick(t0, wx, wy, wz)
-    x = pick(wx, t1, xy, xz)
-    y = pick(wy, xy, t2, yz)
-    z = pick(wz, xz, yz, t3)
-    # |c| >= the largest pivot >= 1, so this division is always safe. The canonical sign is folded
-    # into the same scale factor.
+    return pick(0), pick(1), pick(2), pick(3)
+
+
+def _m2q_scale(xp: Any, w: Any, x: Any, y: Any, z: Any) -> Any:
+    """``+-1 / |c|`` for the selected candidate ``c``, the sign folded in to make ``c / |c|`` canonical.
+    ``|c|`` >= the largest pivot >= 1, so this division is always safe."""
     inv = 1.0 / xp.sqrt(w * w + x * x + y * y + z * z)
-    inv = xp.where(_negative_canonical(w, x, y, z), -inv, inv)
-    return join_quaternion(xp, w * inv, x * inv, y * inv, z * inv, scalar_first)
+    return xp.where(_negative_canonical(w, x, y, z), -inv, inv)
+
+
+def matrix_to_quaternion_tangent(xp: Any, matrix: Any, q: Any, tangent: Any) -> Any:
+    """Forward-mode derivative of :func:`matrix_to_quaternion` (scalar first): ``dq`` for ``dR``.
+
+    ``q = +-c / |c|`` for the selected candidate ``c``, which is affine in the matrix, so
+    ``dq = +-(dc - q (q . dc)) / |c|`` with ``dc`` the same candidate of the tangent: only the selected
+    candidate is differentiated, where autodiff of the formula carries all four through the selection.
+    jax transposes this linear map for reverse mode (see :mod:`diffquat.jax`)."""
+    pivots, candidates = _m2q_candidates(matrix, 1.0)
+    inv = _m2q_scale(xp, *_m2q_select(xp, pivots, candidates))
+    _, tangents = _m2q_candidates(tangent, 0.0)
+    dc = join_quaternion(xp, *_m2q_select(xp, pivots, tangents), True)
+    return inv[..., None] * (dc - q * xp.sum(q * dc, axis=-1, keepdims=True))
 
 
 @op(q=(4,))

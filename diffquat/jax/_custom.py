@@ -14,14 +14,14 @@ Formula = Callable[[Any, Array, Array, Array], Array]
 
 
 def custom_derivative(
-    forward: Callable[[Any, Array], Array], tangent: Formula, cotangent: Formula
+    forward: Callable[[Any, Array], Array], tangent: Formula, cotangent: Formula | None = None
 ) -> Callable[[Any, Array], Array]:
     """``forward(xp, x) -> y`` with the forward-mode derivative ``tangent(xp, x, y, dx) -> dy``.
 
     A ``custom_jvp`` (not ``custom_vjp``): jax transposes the linear tangent rule for reverse mode,
     so ``jvp``, ``vjp``, ``jacfwd``, ``jacrev`` and every higher order all work, and the tangent rule
     differentiates through the primal (this function again). ``cotangent`` is therefore not needed
-    here; it is the same formula, used by the torch backend."""
+    here; where given, it is the same formula, used by the torch backend."""
     del cotangent
 
     @jax.custom_jvp
