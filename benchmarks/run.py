@@ -518,6 +518,8 @@ def merge(paths: list[Path]) -> dict[str, Any]:
     }
     for r in runs:
         merged["ops"].update(r["ops"])
+    # Which run each table comes from (a later run of an operation replaces an earlier one).
+    merged["runs"] = [{"ops": list(r["ops"]), "seconds": r["seconds"], "load": r["load"]} for r in runs]
     return merged
 
 
@@ -573,6 +575,21 @@ def render(results: dict[str, Any]) -> str:
             ]
             if max(results["load"]["before"][0], results["load"]["after"][0])
             > float(results["machine"]["cpus"])
+            else []
+        ),
+        *(
+            [
+                "Merged from separate runs on this machine (`--merge`; a later run of an operation "
+                "replaces an earlier one); every table was taken side by side within one run:",
+                "",
+                *(
+                    f"- run {i + 1}: {', '.join(r['ops'])}; {r['seconds']:.0f} s; load average before "
+                    f"{tuple(round(x, 2) for x in r['load']['before'])}"
+                    for i, r in enumerate(results["runs"])
+                ),
+                "",
+            ]
+            if "runs" in results
             else []
         ),
         "GPU figures (Triton kernels on CUDA): still to be measured; this run had no GPU.",
