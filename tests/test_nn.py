@@ -7,15 +7,19 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 import torch
 from cases import only
 from conftest import Backend
+from flax import nnx
 from scipy.spatial.transform import Rotation
 
+import diffquat.jax as dq
 import diffquat.jax.nn as jnn
 import diffquat.torch.nn as tnn
 
@@ -169,7 +173,6 @@ def test_unknown_representation_and_wrong_size_raise(backend: Backend) -> None:
 def _flax_model(in_features: int, representation: str) -> tuple[Callable, Any, dict[str, Any]]:
     """A two-layer flax (nnx) model ending in the rotation map; returns (apply(state, x), state, the
     last layer's parameters as ``rotation_head`` takes them)."""
-    from flax import nnx
 
     class Model(nnx.Module):
         def __init__(self, rngs: nnx.Rngs) -> None:
@@ -197,8 +200,6 @@ def _flax_model(in_features: int, representation: str) -> tuple[Callable, Any, d
 
 
 def _equinox_model(in_features: int, representation: str) -> tuple[Callable, Any, Callable]:
-    import equinox as eqx
-
     class Model(eqx.Module):
         hidden: eqx.nn.Linear
         out: eqx.nn.Linear
@@ -230,11 +231,6 @@ def test_jax_heads_train_inside_flax_and_equinox_models(framework: str, represen
     """The jax heads are plain functions, so they sit at the end of a flax or equinox model: the model
     equals ``rotation_head`` on its own last layer's parameters, and optax trains it through
     ``jax.jit`` with a geodesic loss (the loss falls, the gradients are finite)."""
-    import optax
-
-    pytest.importorskip(framework)
-    import diffquat.jax as dq
-
     make = _flax_model if framework == "flax" else _equinox_model
     apply, params, head_params = make(5, representation)
     rng = np.random.default_rng(4)
