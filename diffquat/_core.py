@@ -136,17 +136,26 @@ def matrix_to_quaternion(xp: Any, matrix: Any, *, scalar_first: bool = True) -> 
     return join_quaternion(xp, w * inv, x * inv, y * inv, z * inv, scalar_first)
 
 
+def _m2q_pivots(matrix: Any, one: Any) -> tuple[Any, Any, Any, Any]:
+    """The pivots ``t_k = 4 q_k^2`` of a matrix, from its diagonal. ``one`` is their constant: 1 for a
+    matrix, 0 for a tangent (the map is affine)."""
+    m00, m11, m22 = matrix[..., 0, 0], matrix[..., 1, 1], matrix[..., 2, 2]
+    return (
+        one + m00 + m11 + m22,
+        one + m00 - m11 - m22,
+        one - m00 + m11 - m22,
+        one - m00 - m11 + m22,
+    )
+
+
 def _m2q_candidates(matrix: Any, one: Any) -> tuple[tuple[Any, ...], list[tuple[Any, Any, Any, Any]]]:
     """The pivots ``t_k = 4 q_k^2`` and the candidates ``c_k = 4 q_k q`` (w, x, y, z) of a matrix.
 
     ``one`` is the constant of the pivots: 1 for a matrix, 0 for a tangent (the map is affine)."""
-    m00, m01, m02 = matrix[..., 0, 0], matrix[..., 0, 1], matrix[..., 0, 2]
-    m10, m11, m12 = matrix[..., 1, 0], matrix[..., 1, 1], matrix[..., 1, 2]
-    m20, m21, m22 = matrix[..., 2, 0], matrix[..., 2, 1], matrix[..., 2, 2]
-    t0 = one + m00 + m11 + m22
-    t1 = one + m00 - m11 - m22
-    t2 = one - m00 + m11 - m22
-    t3 = one - m00 - m11 + m22
+    m01, m02 = matrix[..., 0, 1], matrix[..., 0, 2]
+    m10, m12 = matrix[..., 1, 0], matrix[..., 1, 2]
+    m20, m21 = matrix[..., 2, 0], matrix[..., 2, 1]
+    t0, t1, t2, t3 = _m2q_pivots(matrix, one)
     # 4 q_i q_j for i != j, each from two entries.
     wx, wy, wz = m21 - m12, m02 - m20, m10 - m01
     xy, xz, yz = m01 + m10, m02 + m20, m12 + m21
@@ -154,15 +163,20 @@ def _m2q_candidates(matrix: Any, one: Any) -> tuple[tuple[Any, ...], list[tuple[
     return (t0, t1, t2, t3), candidates
 
 
+def _m2q_choice(xp: Any, pivots: tuple[Any, ...]) -> tuple[Any, Any, Any, Any]:
+    """The largest pivot as a two-level choice (between pivots (0, 1) and (2, 3), then within the
+    pair; ties go to the lower index), and its value."""
+    t0, t1, t2, t3 = pivots
+    high01, high23 = xp.maximum(t0, t1), xp.maximum(t2, t3)
+    return high01 >= high23, t0 >= t1, t2 >= t3, xp.maximum(high01, high23)
+
+
 def _m2q_select(
     xp: Any, pivots: tuple[Any, ...], candidates: list[tuple[Any, Any, Any, Any]]
 ) -> tuple[Any, Any, Any, Any]:
-    """Components (w, x, y, z) of the candidate of the largest pivot (ties go to the lower index).
-    Every candidate is finite, so the selection is safe for reverse mode, and it happens before the
-    one division."""
-    t0, t1, t2, t3 = pivots
-    use01 = xp.maximum(t0, t1) >= xp.maximum(t2, t3)
-    use0, use2 = t0 >= t1, t2 >= t3
+    """Components (w, x, y, z) of the candidate of the largest pivot. Every candidate is finite, so
+    the selection is safe for reverse mode, and it happens before the one division."""
+    use01, use0, use2, _ = _m2q_choice(xp, pivots)
 
     def pick(i: int) -> Any:
         c0, c1, c2, c3 = (candidate[i] for candidate in candidates)
@@ -178,6 +192,17 @@ def _m2q_scale(xp: Any, w: Any, x: Any, y: Any, z: Any) -> Any:
     return xp.where(_negative_canonical(w, x, y, z), -inv, inv)
 
 
+def _m2q_recover_scale(xp: Any, matrix: Any, q: Any) -> tuple[Any, Any, Any, Any, Any]:
+    """The choice of :func:`_m2q_choice` and the scale ``+-1 / |c|`` of :func:`_m2q_scale`, read back
+    from the result ``q`` (scalar first) instead of rebuilding and renormalising the candidates:
+    component k of candidate k is the pivot ``t_k`` itself, so ``q_k = t_k (+-1 / |c|)``. The pivot is
+    selected before the division, and the largest pivot is at least 1."""
+    use01, use0, use2, largest = _m2q_choice(xp, _m2q_pivots(matrix, 1.0))
+    w, x, y, z = split_quaternion(q, True)
+    q_k = xp.where(use01, xp.where(use0, w, x), xp.where(use2, y, z))
+    return use01, use0, use2, largest, q_k / largest
+
+
 def matrix_to_quaternion_tangent(xp: Any, matrix: Any, q: Any, tangent: Any) -> Any:
     """Forward-mode derivative of :func:`matrix_to_quaternion` (scalar first): ``dq`` for ``dR``.
 
@@ -186,10 +211,43 @@ def matrix_to_quaternion_tangent(xp: Any, matrix: Any, q: Any, tangent: Any) -> 
     candidate is differentiated, where autodiff of the formula carries all four through the selection.
     jax transposes this linear map for reverse mode (see :mod:`diffquat.jax`)."""
     pivots, candidates = _m2q_candidates(matrix, 1.0)
+    # The scale is rebuilt from the candidates here (not read back from q as in the cotangent): jax
+    # linearises this rule, and XLA fuses the rebuilt scale into the forward pass, where reading it
+    # back from q measured twice as slow forward + backward (N = 262144).
     inv = _m2q_scale(xp, *_m2q_select(xp, pivots, candidates))
     _, tangents = _m2q_candidates(tangent, 0.0)
     dc = join_quaternion(xp, *_m2q_select(xp, pivots, tangents), True)
     return inv[..., None] * (dc - q * xp.sum(q * dc, axis=-1, keepdims=True))
+
+
+def matrix_to_quaternion_cotangent(xp: Any, matrix: Any, q: Any, grad: Any) -> Any:
+    """Reverse-mode derivative of :func:`matrix_to_quaternion` (scalar first): ``dL/dR`` (..., 3, 3)
+    for ``dL/dq`` (..., 4); the transpose of :func:`matrix_to_quaternion_tangent`.
+
+    The cotangent of the selected candidate, ``+-(g - q (q . g)) / |c|``, goes to that candidate only;
+    each of its components is a pivot or one of the six sums and differences of off-diagonal entries,
+    and those send it on to the matrix entries they are made of."""
+    use01, use0, use2, _, inv = _m2q_recover_scale(xp, matrix, q)
+    gc = inv[..., None] * (grad - q * xp.sum(q * grad, axis=-1, keepdims=True))
+    gw, gx, gy, gz = split_quaternion(gc, True)
+    chosen = (use01 & use0, use01 & ~use0, ~use01 & use2, ~use01 & ~use2)
+
+    def to(k: int, g: Any) -> Any:
+        return xp.where(chosen[k], g, 0.0)
+
+    # Candidate k is (c_k0, ..., c_k3) = row k of the symmetric K (see _m2q_candidates): entry (a, b)
+    # of K receives the cotangent where row a or row b was chosen.
+    tw, tx, ty, tz = to(0, gw), to(1, gx), to(2, gy), to(3, gz)
+    wx, wy, wz = to(0, gx) + to(1, gw), to(0, gy) + to(2, gw), to(0, gz) + to(3, gw)
+    xy, xz, yz = to(1, gy) + to(2, gx), to(1, gz) + to(3, gx), to(2, gz) + to(3, gy)
+    return stack_matrix(
+        xp,
+        [
+            tw + tx - ty - tz, xy - wz, wy + xz,
+            wz + xy, tw - tx + ty - tz, yz - wx,
+            xz - wy, wx + yz, tw - tx - ty + tz,
+        ],
+    )  # fmt: skip
 
 
 @op(q=(4,))

@@ -1,16 +1,18 @@
 """The torch fast paths (diffquat/torch/_fused.py) against the core formula they replace.
 
-The shared matrix already runs every case through the public functions, which take the fused path for
-small eager batches; this checks what it does not: the fused and core paths side by side (values and
-reverse-mode gradients, both storage orders), forward mode (``jvp``, which ``gradcheck`` checks
-against finite differences), and the dispatch on batch size."""
+The shared matrix already runs every case through the public functions, which take the gather
+Functions for small eager batches; this checks what it does not: every fused path and the core side by
+side (values and reverse-mode gradients, both storage orders, every edge case), forward mode (``jvp``,
+which ``gradcheck`` checks against finite differences), double backward and ``torch.func`` for the
+columns Function (the shared matrix's batches are too small to reach it), and the dispatch on batch
+size."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import torch
-from cases import CASES_BY_NAME, EDGE_CASES, oracle_quaternion_to_matrix
+from cases import AT_HALF_TURNS, CASES_BY_NAME, EDGE_CASES, oracle_quaternion_to_matrix, outer
 
 import diffquat.torch as dq
 from diffquat import _core
@@ -19,11 +21,21 @@ from diffquat.torch import _fused
 PAIRS = [
     (_fused.quaternion_to_matrix, _core.quaternion_to_matrix, lambda q: q),
     (_fused.matrix_to_quaternion, _core.matrix_to_quaternion, oracle_quaternion_to_matrix),
+    (_fused.matrix_to_quaternion_columns, _core.matrix_to_quaternion, oracle_quaternion_to_matrix),
 ]
+PAIR_IDS = ["quaternion_to_matrix", "matrix_to_quaternion", "matrix_to_quaternion_columns"]
+
+
+def _off_so3(n: int) -> torch.Tensor:
+    """Float64 rotation matrices plus noise: off SO(3), where the derivatives of the normalisation and
+    of every candidate entry matter."""
+    q = torch.tensor(CASES_BY_NAME["random"].quaternions("float64")[:n])
+    m = torch.tensor(oracle_quaternion_to_matrix(q.numpy()))
+    return m + 0.1 * torch.tensor(np.random.default_rng(0).normal(size=m.shape))
 
 
 @pytest.mark.parametrize("scalar_first", [True, False])
-@pytest.mark.parametrize("pair", range(len(PAIRS)), ids=["quaternion_to_matrix", "matrix_to_quaternion"])
+@pytest.mark.parametrize("pair", range(len(PAIRS)), ids=PAIR_IDS)
 @pytest.mark.parametrize("case", [*EDGE_CASES, "norms", "zero", "sign_flip"])
 def test_fused_equals_core(pair: int, case: str, scalar_first: bool) -> None:
     fused, core, make = PAIRS[pair]
@@ -45,23 +57,63 @@ def test_fused_equals_core(pair: int, case: str, scalar_first: bool) -> None:
 @pytest.mark.parametrize("scalar_first", [True, False])
 def test_fused_forward_mode(scalar_first: bool) -> None:
     q = torch.tensor(CASES_BY_NAME["random"].quaternions("float64")[:6], requires_grad=True)
-    m = torch.tensor(oracle_quaternion_to_matrix(q.detach().numpy()))
-    m = (m + 0.1 * torch.tensor(np.random.default_rng(0).normal(size=m.shape))).requires_grad_(True)
-    for fn, x in ((_fused.quaternion_to_matrix, q), (_fused.matrix_to_quaternion, m)):
+    m = _off_so3(6).requires_grad_(True)
+    for fn, x in (
+        (_fused.quaternion_to_matrix, q),
+        (_fused.matrix_to_quaternion, m),
+        (_fused.matrix_to_quaternion_columns, m),
+    ):
         assert torch.autograd.gradcheck(
             lambda t, fn=fn: fn(torch, t, scalar_first=scalar_first), x, check_forward_ad=True
         )
 
 
+# Half-turns about an axis between two coordinate axes tie two pivots: off SO(3) the two candidates
+# have different first derivatives, so there is no second derivative for finite differences to match.
+@pytest.mark.parametrize("case", [*(c for c in EDGE_CASES if c not in AT_HALF_TURNS), "off_so3"])
+def test_columns_double_backward(case: str) -> None:
+    """The columns Function's backward is made of differentiable operations (the lerp selection
+    included), so second derivatives are exact: gradgradcheck against finite differences, through
+    ``q q^T`` since the canonical sign jumps at half-turns."""
+    if case == "off_so3":
+        m = _off_so3(6)
+    else:
+        m = torch.tensor(oracle_quaternion_to_matrix(CASES_BY_NAME[case].quaternions("float64")))
+    fn = lambda t: outer(_fused.matrix_to_quaternion_columns(torch, t))  # noqa: E731
+    assert torch.autograd.gradgradcheck(fn, m.reshape(-1, 3, 3)[:6].clone().requires_grad_(True))
+
+
+def test_columns_under_torch_func() -> None:
+    """``vmap`` (through ``generate_vmap_rule``), ``jacrev`` and ``jacfwd`` of the columns Function
+    equal those of the core formula."""
+    m = _off_so3(5)
+
+    def columns(t: torch.Tensor) -> torch.Tensor:
+        return _fused.matrix_to_quaternion_columns(torch, t)
+
+    def core(t: torch.Tensor) -> torch.Tensor:
+        return _core.matrix_to_quaternion(torch, t)
+
+    for transform in (torch.func.jacrev, torch.func.jacfwd):
+        ours = torch.func.vmap(transform(columns))(m)
+        theirs = torch.func.vmap(transform(core))(m)
+        assert ours.shape == (5, 4, 3, 3)
+        torch.testing.assert_close(ours, theirs, rtol=1e-10, atol=1e-10)
+
+
 def test_batch_size_dispatch() -> None:
-    """Small eager batches take the fused Function, large ones the core formula."""
-    small = torch.randn(_fused.MAX_FUSED_BATCH, 4, requires_grad=True)
-    large = torch.randn(_fused.MAX_FUSED_BATCH + 1, 4, requires_grad=True)
-    assert "QuaternionToMatrix" in type(dq.quaternion_to_matrix(small).grad_fn).__name__
+    """Small eager batches take the gather Functions; large ones the core formula (quaternion to
+    matrix) or the columns Function (matrix to quaternion)."""
+    limit = _fused.MAX_FUSED_BATCH["quaternion_to_matrix"]
+    small = torch.randn(limit, 4, requires_grad=True)
+    large = torch.randn(limit + 1, 4, requires_grad=True)
+    assert type(dq.quaternion_to_matrix(small).grad_fn).__name__ == "QuaternionToMatrixBackward"
     assert "QuaternionToMatrix" not in type(dq.quaternion_to_matrix(large).grad_fn).__name__
-    matrices = dq.quaternion_to_matrix(large.detach()).requires_grad_(True)
-    assert "MatrixToQuaternion" in type(dq.matrix_to_quaternion(matrices[:10]).grad_fn).__name__
-    assert "MatrixToQuaternion" not in type(dq.matrix_to_quaternion(matrices).grad_fn).__name__
+    limit = _fused.MAX_FUSED_BATCH["matrix_to_quaternion"]
+    matrices = dq.quaternion_to_matrix(torch.randn(limit + 1, 4)).requires_grad_(True)
+    assert type(dq.matrix_to_quaternion(matrices[:limit]).grad_fn).__name__ == "MatrixToQuaternionBackward"
+    large_fn = type(dq.matrix_to_quaternion(matrices).grad_fn).__name__
+    assert large_fn == "MatrixToQuaternionColumnsBackward"
 
 
 def _traced_ops(fn: object, x: torch.Tensor) -> list[str]:

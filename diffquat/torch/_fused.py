@@ -1,13 +1,19 @@
 """Eager fast paths of ``quaternion_to_matrix`` and ``matrix_to_quaternion`` on torch.
 
-Each is a ``torch.autograd.Function`` over the index tables of :mod:`diffquat._fused`: about a dozen
-whole-tensor operations forward and twenty backward, instead of autograd recording and replaying the
-core's ~30 elementwise operations (each a pass over memory) plus their derivatives. No BLAS matmul:
-with a small contraction it would be slower than the gathers, and its thread pool competes with
-ATen's on a loaded machine. Each saves only its input and recomputes what it needs, so the memory kept
-for backward is the input's. The backward is made of differentiable torch operations, so double
-backward (``gradgradcheck``, Hessians) differentiates it; ``jvp`` gives forward mode;
-``generate_vmap_rule`` gives ``torch.func.vmap`` (and with it ``jacrev``/``jacfwd``).
+Small batches: a ``torch.autograd.Function`` for each, over the index tables of
+:mod:`diffquat._fused` (the "gather" Functions): about a dozen whole-tensor operations forward and
+twenty backward, instead of autograd recording and replaying the core's ~30 elementwise operations
+(each a pass over memory) plus their derivatives. No BLAS matmul: with a small contraction it would be
+slower than the gathers, and its thread pool competes with ATen's on a loaded machine. Each saves
+only its input and recomputes what it needs, so the memory kept for backward is the input's.
+
+Large batches of ``matrix_to_quaternion``: the "columns" Function, the core formula forward and its
+analytic derivative (``_core.matrix_to_quaternion_cotangent``) backward, both on whole columns, with a
+vectorised selection in place of ``torch.where`` (see ``_EagerTorch``).
+
+Every backward is made of differentiable torch operations, so double backward (``gradgradcheck``,
+Hessians) differentiates it; ``jvp`` gives forward mode; ``generate_vmap_rule`` gives
+``torch.func.vmap`` (and with it ``jacrev``/``jacfwd``).
 
 The functions here compute in scalar-first order; :mod:`diffquat.torch` reorders scalar-last arrays
 around them, and calls them only in eager mode: under ``torch.compile`` it traces the plain core
@@ -160,11 +166,68 @@ class MatrixToQuaternion(_SavesInput):
         return _fused.normalize_vjp(torch, c * inv, inv, tangent_c)
 
 
-# Largest batch (number of rotations) that takes the fused path. Measured on a 2-core CPU (float32,
-# forward + backward, see benchmarks/): at N = 64 the fused path is ~3x faster than autograd over the
-# core formula (its cost there is the number of operations), at N = 4096 it is ~2x slower (its gathers
-# and index_add over (N, 16) and (N, 18) intermediates move more memory than the core's (N,) passes).
-MAX_FUSED_BATCH = 1024
+class _EagerTorch:
+    """``torch`` as the core's array namespace, with a ``where`` that is fast in eager mode.
+
+    ``torch.where`` on the CPU runs about 25x slower than a multiply (it is not vectorised; measured
+    on float32 at N = 262144), and the core selects with it in every conversion. Every ``where`` of
+    the core chooses between finite branches (its numerical rule), and for finite ``a``, ``b``,
+    ``lerp(b, a, 1) = a`` and ``lerp(b, a, 0) = b`` exactly (up to the sign of a zero), so ``lerp``
+    with the condition as its weight is the same selection in one vectorised pass. It is
+    differentiable in ``a`` and ``b`` (the weight is a constant), so double backward goes through it."""
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(torch, name)
+
+    @staticmethod
+    def where(condition: Tensor, a: Tensor | float, b: Tensor | float) -> Tensor:
+        like = a if isinstance(a, Tensor) else b
+        assert isinstance(like, Tensor)
+        if isinstance(b, float) and b == 0.0:
+            return like * condition.to(like.dtype)  # a * 1 = a and a * 0 = 0 for finite a: one pass
+        start = b if isinstance(b, Tensor) else torch.tensor(b, dtype=like.dtype, device=like.device)
+        end = a if isinstance(a, Tensor) else torch.tensor(a, dtype=like.dtype, device=like.device)
+        return torch.lerp(start, end, condition.to(like.dtype))
+
+
+_EAGER = _EagerTorch()
+
+
+class MatrixToQuaternionColumns(torch.autograd.Function):
+    """The core formula forward and its analytic derivatives (``_core.matrix_to_quaternion_cotangent``
+    and ``_tangent``): only the selected candidate is differentiated. Keeps the input and the output
+    (both formulas use the quaternion; recomputing it would cost a forward pass)."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(matrix: Tensor) -> Tensor:
+        return _core.matrix_to_quaternion(_EAGER, matrix)
+
+    @staticmethod
+    def setup_context(ctx: Any, inputs: tuple[Tensor], output: Tensor) -> None:
+        ctx.save_for_backward(inputs[0], output)
+        ctx.save_for_forward(inputs[0], output)
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> Tensor:
+        matrix, q = ctx.saved_tensors
+        return _core.matrix_to_quaternion_cotangent(_EAGER, matrix, q, grad)
+
+    @staticmethod
+    def jvp(ctx: Any, tangent: Tensor) -> Tensor:
+        matrix, q = ctx.saved_tensors
+        return _core.matrix_to_quaternion_tangent(_EAGER, matrix, q, tangent)
+
+
+# Largest batch (number of rotations) that takes the gather Functions above, by operation. Measured
+# on a 2-core CPU (float32, forward + backward, median of interleaved runs): their cost is the number
+# of operations, so at N = 64 they are ~2x faster than autograd over the core formula, but their
+# gathers and index_add over (N, 16) and (N, 18) intermediates move more memory than the core's (N,)
+# column passes, so at N = 4096 they are ~2x slower. Above it, quaternion_to_matrix takes autograd
+# over the core formula and matrix_to_quaternion the columns Function (below N = 512 the gather one is
+# faster, above 1024 the columns one).
+MAX_FUSED_BATCH = {"quaternion_to_matrix": 1024, "matrix_to_quaternion": 512}
 
 # Scalar-last (x, y, z, w) <-> scalar-first (w, x, y, z) positions.
 TO_FIRST = [3, 0, 1, 2]
@@ -180,6 +243,16 @@ def matrix_to_quaternion(xp: Any, matrix: Tensor, *, scalar_first: bool = True) 
     """Fused :func:`diffquat._core.matrix_to_quaternion` (same name: the backend validates by it)."""
     q: Tensor = MatrixToQuaternion.apply(matrix)  # type: ignore[no-untyped-call]
     return q if scalar_first else q[..., TO_LAST]
+
+
+def matrix_to_quaternion_columns(xp: Any, matrix: Tensor, *, scalar_first: bool = True) -> Tensor:
+    """:class:`MatrixToQuaternionColumns` in either storage order."""
+    q: Tensor = MatrixToQuaternionColumns.apply(matrix)  # type: ignore[no-untyped-call]
+    return q if scalar_first else q[..., TO_LAST]
+
+
+# The backend validates arguments by the core function's name.
+matrix_to_quaternion_columns.__name__ = "matrix_to_quaternion"
 
 
 def _triton_usable(x: Tensor) -> bool:
@@ -203,11 +276,15 @@ def q2m_path(q: Any) -> Callable[..., Tensor]:
         from . import _triton
 
         return _triton.quaternion_to_matrix
-    return quaternion_to_matrix if q.numel() <= 4 * MAX_FUSED_BATCH else _core.quaternion_to_matrix
+    small = q.numel() <= 4 * MAX_FUSED_BATCH["quaternion_to_matrix"]
+    return quaternion_to_matrix if small else _core.quaternion_to_matrix
 
 
 def m2q_path(matrix: Any) -> Callable[..., Tensor]:
-    """The implementation of ``matrix_to_quaternion`` for this call (no Triton kernel yet)."""
+    """The implementation of ``matrix_to_quaternion`` for this call: the core formula under
+    ``torch.compile``, the gather Function for small eager batches, the columns Function for large
+    ones (no Triton kernel yet)."""
     if not isinstance(matrix, Tensor) or torch.compiler.is_compiling():
         return _core.matrix_to_quaternion
-    return matrix_to_quaternion if matrix.numel() <= 9 * MAX_FUSED_BATCH else _core.matrix_to_quaternion
+    small = matrix.numel() <= 9 * MAX_FUSED_BATCH["matrix_to_quaternion"]
+    return matrix_to_quaternion if small else matrix_to_quaternion_columns
