@@ -1,11 +1,10 @@
 """Eager fast paths of ``quaternion_to_matrix`` and ``matrix_to_quaternion`` on torch.
 
-Small batches: a ``torch.autograd.Function`` for each, over the index tables of
-:mod:`diffquat._fused` (the "gather" Functions): about a dozen whole-tensor operations forward and
-twenty backward, instead of autograd recording and replaying the core's ~30 elementwise operations
-(each a pass over memory) plus their derivatives. No BLAS matmul: with a small contraction it would be
-slower than the gathers, and its thread pool competes with ATen's on a loaded machine. Each saves
-only its input and recomputes what it needs, so the memory kept for backward is the input's.
+Small batches: a ``torch.autograd.Function`` for each whose linear part is one small matrix product
+with the constant forms of :mod:`diffquat._fused`: seven operations forward and eight backward for
+``quaternion_to_matrix``, instead of autograd recording and replaying the core's ~40 elementwise
+operations plus their derivatives, each a few microseconds of dispatch at small N. The backward is
+analytic and keeps only small tensors beside the input (1 / |q|^2, or the selected candidate).
 
 Large batches of ``matrix_to_quaternion``: the "columns" Function, the core formula forward and its
 analytic derivative (``_core.matrix_to_quaternion_cotangent``) backward, both on whole columns, with a
@@ -31,28 +30,25 @@ from torch import Tensor
 from .. import _core, _fused
 
 _TABLES = {
-    "q2m_index": (_fused.Q2M_INDEX, torch.long),
-    "q2m_sign": (_fused.Q2M_SIGN, None),
-    "q2m_entry": (_fused.Q2M_ENTRY, torch.long),
-    "q2m_base": (_fused.Q2M_BASE, None),
-    "m2q_index": (_fused.M2Q_INDEX, torch.long),
-    "m2q_sign": (_fused.M2Q_SIGN, None),
-    "m2q_entry": (_fused.M2Q_ENTRY, torch.long),
-    "m2q_base": (_fused.M2Q_BASE, None),
-    "priority": (_fused.SIGN_PRIORITY, None),
-    "components": (list(range(4)), torch.long),
+    "q2m_forms": _fused.Q2M_FORMS,
+    "q2m_forms_sym": _fused.Q2M_FORMS_SYM,
+    "q2m_base": _fused.Q2M_BASE,
+    "m2q_forms": _fused.M2Q_FORMS,
+    "m2q_forms_t": [list(row) for row in zip(*_fused.M2Q_FORMS, strict=True)],
+    "m2q_base": _fused.M2Q_BASE,
+    "priority": _fused.SIGN_PRIORITY,
+    "components": [0.0, 1.0, 2.0, 3.0],
 }
 _cache: dict[tuple[str, torch.dtype, torch.device], Tensor] = {}
 
 
 def _table(name: str, like: Tensor) -> Tensor:
-    """A table of :mod:`diffquat._fused` as a tensor on ``like``'s device (floating tables in its
-    dtype), built once per dtype and device."""
+    """A table of :mod:`diffquat._fused` as a tensor of ``like``'s dtype and device, built once per
+    dtype and device."""
     key = (name, like.dtype, like.device)
     value = _cache.get(key)
     if value is None:
-        values, dtype = _TABLES[name]
-        value = torch.tensor(values, dtype=dtype or like.dtype, device=like.device)
+        value = torch.tensor(_TABLES[name], dtype=like.dtype, device=like.device)
         _cache[key] = value
     return value
 
@@ -62,27 +58,106 @@ def _split(x: Tensor, rows: int, cols: int) -> Tensor:
     return x.reshape(*x.shape[:-1], rows, cols)
 
 
-def _q2m_terms(products: Tensor) -> Tensor:
-    """The 9 entries of ``R - I`` (flat) from the 16 products ``P`` (flat): two signed terms each."""
-    terms = torch.index_select(products, -1, _table("q2m_index", products)) * _table("q2m_sign", products)
-    return torch.sum(_split(terms, 9, 2), dim=-1)
+def _products(a: Tensor, b: Tensor) -> Tensor:
+    """The 16 products ``a_i b_j`` (flat, row-major), shape (..., 16)."""
+    return torch.flatten(a[..., :, None] * b[..., None, :], -2)
 
 
-def _q2m(q: Tensor) -> Tensor:
-    s = _fused.q2m_scale(torch, q)
-    products = torch.flatten((s * q)[..., :, None] * q[..., None, :], -2)
-    flat = _q2m_terms(products) + _table("q2m_base", q)
-    return _split(flat, 3, 3)
+def _inverse_square_norm(n2: Tensor) -> Tensor:
+    """``1 / |q|^2`` from ``|q|^2`` (..., 1), and 0 (the zero quaternion gives the identity, with a
+    zero gradient) below the smallest normal number. The clamp keeps the discarded value and every
+    derivative of it finite at ``q = 0`` (double backward differentiates this too)."""
+    tiny = torch.finfo(n2.dtype).tiny
+    return torch.reciprocal(torch.clamp_min(n2, tiny)).masked_fill(n2 < tiny, 0.0)
 
 
-def q2m_backward(q: Tensor, grad: Tensor) -> Tensor:
-    """``dL/dq`` (scalar first) from ``dL/dR``, in differentiable torch operations."""
-    # dL/dP: each of the 18 terms sends its entry's cotangent, signed, to its product.
-    entries = torch.index_select(torch.flatten(grad, -2), -1, _table("q2m_entry", q))
-    terms = entries * _table("q2m_sign", q)
-    forms = torch.zeros((*terms.shape[:-1], 16), dtype=terms.dtype, device=terms.device)
-    forms = torch.index_add(forms, -1, _table("q2m_index", q), terms)
-    return _fused.q2m_gradient(torch, q, _fused.q2m_scale(torch, q), _split(forms, 4, 4))
+def _q2m(q: Tensor) -> tuple[Tensor, Tensor]:
+    """``R`` (..., 3, 3) and ``1 / |q|^2`` (..., 1): one outer product, one matrix product with the
+    constant forms, one fused multiply-add."""
+    forms = _products(q, q) @ _table("q2m_forms", q)
+    s = _inverse_square_norm(forms[..., 9:])
+    return _split(torch.addcmul(_table("q2m_base", q), forms[..., :9], s), 3, 3), s
+
+
+def q2m_backward(q: Tensor, grad: Tensor, s: Tensor | None = None) -> Tensor:
+    """``dL/dq`` (scalar first) from ``dL/dR``, in differentiable torch operations; ``s = 1 / |q|^2``
+    as :func:`_q2m` returns it, recomputed (differentiably) when not given.
+
+    ``R = I + s A(q)`` with ``A`` quadratic, ``h = H q`` the gradient of ``G . A`` (``H`` from
+    ``Q2M_FORMS_SYM``), ``G . A = (q . h) / 2`` and ``ds/dq = -2 s^2 q``, so
+    ``dL/dq = s (h - s (q . h) q)``; ``s (q . h)`` is formed first, since for ``|q|`` near 1e15 or
+    1e-15 in float32 the dot product alone is at the range limit."""
+    if s is None:
+        s = _inverse_square_norm(torch.sum(q * q, dim=-1, keepdim=True))
+    h = _split(torch.flatten(grad, -2) @ _table("q2m_forms_sym", q), 4, 4)
+    hq = (h @ q[..., :, None])[..., 0]
+    return s * torch.addcmul(hq, s * torch.sum(q * hq, dim=-1, keepdim=True), q, value=-1.0)
+
+
+def _q2m_jvp(q: Tensor, tangent: Tensor) -> Tensor:
+    """``dR`` for ``dq``: ``s (u q^T + q u^T) . F`` with ``u = dq - s (q . dq) q`` (the radial part of
+    ``dq``, along ``q``, leaves ``R`` unchanged)."""
+    s = _inverse_square_norm(torch.sum(q * q, dim=-1, keepdim=True))
+    u = torch.addcmul(tangent, s * torch.sum(q * tangent, dim=-1, keepdim=True), q, value=-1.0)
+    d_forms = (_products(u, q) + _products(q, u)) @ _table("q2m_forms", q)[:, :9]
+    return _split(s * d_forms, 3, 3)
+
+
+def _select(matrix: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The candidate of the largest pivot, its signed inverse norm, and the pivot (..., 1).
+
+    ``argmax`` returns the first maximum, so ties go to the lower index, as in the core. The canonical
+    sign is that of the first non-zero component in (w, x, y, z) order: the argmax of ``c != 0``
+    weighted by priority finds it, and the pivot's own component (>= 1) guarantees there is one."""
+    k = _split(torch.flatten(matrix, -2) @ _table("m2q_forms", matrix) + _table("m2q_base", matrix), 4, 4)
+    pivot = torch.argmax(torch.diagonal(k, dim1=-2, dim2=-1), dim=-1, keepdim=True)
+    c = torch.take_along_dim(k, pivot[..., None], dim=-2)[..., 0, :]
+    leading = torch.argmax((c != 0) * _table("priority", matrix), dim=-1, keepdim=True)
+    norm = torch.rsqrt(torch.sum(c * c, dim=-1, keepdim=True))
+    return c, torch.copysign(norm, torch.take_along_dim(c, leading, dim=-1)), pivot
+
+
+def _m2q_backward(matrix: Tensor, grad: Tensor, c: Tensor, inv: Tensor, pivot: Tensor) -> Tensor:
+    """``dL/dmatrix`` from ``dL/dq``: only the selected row of ``K`` receives the cotangent, and
+    ``K``'s forms send it back to the matrix entries."""
+    grad_c = _fused.normalize_vjp(torch, c * inv, inv, grad)
+    rows = (_table("components", matrix) == pivot).to(grad_c.dtype)
+    grad_k = _products(rows, grad_c)
+    return _split(grad_k @ _table("m2q_forms_t", matrix), 3, 3)
+
+
+def _m2q_jvp(matrix: Tensor, tangent: Tensor) -> Tensor:
+    c, inv, pivot = _select(matrix)
+    tangent_k = _split(torch.flatten(tangent, -2) @ _table("m2q_forms", matrix), 4, 4)
+    tangent_c = torch.take_along_dim(tangent_k, pivot[..., None], dim=-2)[..., 0, :]
+    return _fused.normalize_vjp(torch, c * inv, inv, tangent_c)
+
+
+# Two Functions for each conversion, with the same formulas. In eager mode (no torch.func transform
+# active) the old-style ``forward(ctx, ...)`` one: ``Function.apply`` binds the arguments of a
+# ``setup_context`` Function through ``inspect.signature`` on every call, about 20 us, a fifth of the
+# whole forward + backward at N = 64. It also keeps what backward needs (small: (..., 1) and (..., 4))
+# instead of recomputing it, except under double backward, which needs it as a function of the input.
+# Under torch.func the ``setup_context`` one, which ``generate_vmap_rule`` requires.
+
+
+class QuaternionToMatrix(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx: Any, q: Tensor) -> Tensor:
+        r, s = _q2m(q)
+        ctx.save_for_backward(q, s)
+        ctx.save_for_forward(q)
+        return r
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> Tensor:
+        q, s = ctx.saved_tensors
+        return q2m_backward(q, grad, None if torch.is_grad_enabled() else s)
+
+    @staticmethod
+    def jvp(ctx: Any, tangent: Tensor) -> Tensor:
+        (q,) = ctx.saved_tensors
+        return _q2m_jvp(q, tangent)
 
 
 class _SavesInput(torch.autograd.Function):
@@ -96,10 +171,10 @@ class _SavesInput(torch.autograd.Function):
         ctx.save_for_forward(inputs[0])
 
 
-class QuaternionToMatrix(_SavesInput):
+class QuaternionToMatrixTransformable(_SavesInput):
     @staticmethod
     def forward(q: Tensor) -> Tensor:
-        return _q2m(q)
+        return _q2m(q)[0]
 
     @staticmethod
     def backward(ctx: Any, grad: Tensor) -> Tensor:
@@ -109,35 +184,31 @@ class QuaternionToMatrix(_SavesInput):
     @staticmethod
     def jvp(ctx: Any, tangent: Tensor) -> Tensor:
         (q,) = ctx.saved_tensors
-        s = _fused.q2m_scale(torch, q)
-        # d(s q) = s (dq - s (q . dq) q), since ds = -s^2 (q . dq)
-        du = s * (tangent - (s * torch.sum(q * tangent, dim=-1, keepdim=True)) * q)
-        d_products = du[..., :, None] * q[..., None, :] + (s * q)[..., :, None] * tangent[..., None, :]
-        return _split(_q2m_terms(torch.flatten(d_products, -2)), 3, 3)
+        return _q2m_jvp(q, tangent)
 
 
-def _candidates(matrix: Tensor) -> Tensor:
-    """``K`` flat (..., 16): entry (a, b) is ``4 q_a q_b`` of the core, three signed entries each."""
-    padded = torch.nn.functional.pad(torch.flatten(matrix, -2), (0, 1))
-    terms = torch.index_select(padded, -1, _table("m2q_index", matrix)) * _table("m2q_sign", matrix)
-    return torch.sum(_split(terms, 16, 3), dim=-1)
+class MatrixToQuaternion(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx: Any, matrix: Tensor) -> Tensor:
+        c, inv, pivot = _select(matrix)
+        ctx.save_for_backward(matrix, c, inv, pivot)
+        ctx.save_for_forward(matrix)
+        return c * inv
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> Tensor:
+        matrix, c, inv, pivot = ctx.saved_tensors
+        if torch.is_grad_enabled():  # double backward: c and inv as functions of the matrix
+            c, inv, pivot = _select(matrix)
+        return _m2q_backward(matrix, grad, c, inv, pivot)
+
+    @staticmethod
+    def jvp(ctx: Any, tangent: Tensor) -> Tensor:
+        (matrix,) = ctx.saved_tensors
+        return _m2q_jvp(matrix, tangent)
 
 
-def _select(matrix: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """The candidate of the largest pivot, its signed inverse norm, and the pivot (..., 1).
-
-    ``argmax`` returns the first maximum, so ties go to the lower index, as in the core. The canonical
-    sign is that of the first non-zero component in (w, x, y, z) order: the argmax of ``c != 0``
-    weighted by priority finds it, and the pivot's own component (>= 1) guarantees there is one."""
-    k = _split(_candidates(matrix) + _table("m2q_base", matrix), 4, 4)
-    pivot = torch.argmax(torch.diagonal(k, dim1=-2, dim2=-1), dim=-1, keepdim=True)
-    c = torch.gather(k, -2, pivot[..., None].expand(*pivot.shape, 4))[..., 0, :]
-    leading = torch.argmax((c != 0) * _table("priority", matrix), dim=-1, keepdim=True)
-    inv = torch.copysign(torch.rsqrt(torch.sum(c * c, dim=-1, keepdim=True)), torch.gather(c, -1, leading))
-    return c, inv, pivot
-
-
-class MatrixToQuaternion(_SavesInput):
+class MatrixToQuaternionTransformable(_SavesInput):
     @staticmethod
     def forward(matrix: Tensor) -> Tensor:
         c, inv, _ = _select(matrix)
@@ -146,24 +217,12 @@ class MatrixToQuaternion(_SavesInput):
     @staticmethod
     def backward(ctx: Any, grad: Tensor) -> Tensor:
         (matrix,) = ctx.saved_tensors
-        c, inv, pivot = _select(matrix)
-        grad_c = _fused.normalize_vjp(torch, c * inv, inv, grad)
-        # Only the selected row of K receives the cotangent; each of K's 48 terms sends it back,
-        # signed, to its matrix entry (the pad entry 9 is dropped).
-        rows = _table("components", matrix) == pivot
-        grad_k = torch.flatten(rows[..., :, None] * grad_c[..., None, :], -2)
-        terms = torch.index_select(grad_k, -1, _table("m2q_entry", matrix)) * _table("m2q_sign", matrix)
-        padded = torch.zeros((*terms.shape[:-1], 10), dtype=terms.dtype, device=terms.device)
-        padded = torch.index_add(padded, -1, _table("m2q_index", matrix), terms)
-        return _split(padded[..., :9], 3, 3)
+        return _m2q_backward(matrix, grad, *_select(matrix))
 
     @staticmethod
     def jvp(ctx: Any, tangent: Tensor) -> Tensor:
         (matrix,) = ctx.saved_tensors
-        c, inv, pivot = _select(matrix)
-        tangent_k = _split(_candidates(tangent), 4, 4)
-        tangent_c = torch.gather(tangent_k, -2, pivot[..., None].expand(*pivot.shape, 4))[..., 0, :]
-        return _fused.normalize_vjp(torch, c * inv, inv, tangent_c)
+        return _m2q_jvp(matrix, tangent)
 
 
 class _EagerTorch:
@@ -220,14 +279,13 @@ class MatrixToQuaternionColumns(torch.autograd.Function):
         return _core.matrix_to_quaternion_tangent(_EAGER, matrix, q, tangent)
 
 
-# Largest batch (number of rotations) that takes the gather Functions above, by operation. Measured
-# on a 2-core CPU (float32, forward + backward, median of interleaved runs): their cost is the number
-# of operations, so at N = 64 they are ~2x faster than autograd over the core formula, but their
-# gathers and index_add over (N, 16) and (N, 18) intermediates move more memory than the core's (N,)
-# column passes, so at N = 4096 they are ~2x slower. Above it, quaternion_to_matrix takes autograd
-# over the core formula and matrix_to_quaternion the columns Function (below N = 512 the gather one is
-# faster, above 1024 the columns one).
-MAX_FUSED_BATCH = {"quaternion_to_matrix": 1024, "matrix_to_quaternion": 512}
+# Largest batch (number of rotations) that takes the small-batch Functions above, by operation.
+# Measured on a 2-core CPU (float32, forward + backward, medians of interleaved runs): their cost is
+# the number of operations, ~2.5x fewer than autograd over the core formula at N = 64, but their
+# (N, 16) intermediates move more memory than the core's (N,) column passes. quaternion_to_matrix:
+# 1.6x faster than autograd over the core at N = 4096, even at 16384, so the core takes over above
+# 8192. matrix_to_quaternion: 1.6x faster than the columns Function at 1024, 1.4x slower at 4096.
+MAX_FUSED_BATCH = {"quaternion_to_matrix": 8192, "matrix_to_quaternion": 2048}
 
 # Scalar-last (x, y, z, w) <-> scalar-first (w, x, y, z) positions.
 TO_FIRST = [3, 0, 1, 2]
@@ -236,12 +294,19 @@ TO_LAST = [1, 2, 3, 0]
 
 def quaternion_to_matrix(xp: Any, q: Tensor, *, scalar_first: bool = True) -> Tensor:
     """Fused :func:`diffquat._core.quaternion_to_matrix` (same name: the backend validates by it)."""
-    return QuaternionToMatrix.apply(q if scalar_first else q[..., TO_FIRST])  # type: ignore[no-untyped-call]
+    fn = (
+        QuaternionToMatrixTransformable if torch._C._are_functorch_transforms_active() else QuaternionToMatrix
+    )
+    r: Tensor = fn.apply(q if scalar_first else q[..., TO_FIRST])  # type: ignore[no-untyped-call]
+    return r
 
 
 def matrix_to_quaternion(xp: Any, matrix: Tensor, *, scalar_first: bool = True) -> Tensor:
     """Fused :func:`diffquat._core.matrix_to_quaternion` (same name: the backend validates by it)."""
-    q: Tensor = MatrixToQuaternion.apply(matrix)  # type: ignore[no-untyped-call]
+    fn = (
+        MatrixToQuaternionTransformable if torch._C._are_functorch_transforms_active() else MatrixToQuaternion
+    )
+    q: Tensor = fn.apply(matrix)  # type: ignore[no-untyped-call]
     return q if scalar_first else q[..., TO_LAST]
 
 
@@ -282,7 +347,7 @@ def q2m_path(q: Any) -> Callable[..., Tensor]:
 
 def m2q_path(matrix: Any) -> Callable[..., Tensor]:
     """The implementation of ``matrix_to_quaternion`` for this call: the core formula under
-    ``torch.compile``, the gather Function for small eager batches, the columns Function for large
+    ``torch.compile``, the small-batch Function for small eager batches, the columns Function for large
     ones (no Triton kernel yet)."""
     if not isinstance(matrix, Tensor) or torch.compiler.is_compiling():
         return _core.matrix_to_quaternion
