@@ -84,8 +84,9 @@ def _m2q_forms() -> list[list[float]]:
 M2Q_FORMS = _m2q_forms()
 #: The constant part of K: 1 on the diagonal (the pivots are 1 +- m00 +- m11 +- m22).
 M2Q_BASE = [1.0 if a == b else 0.0 for a in range(4) for b in range(4)]
-#: Priority of each component in the canonical-sign rule: the first non-zero of (w, x, y, z) decides.
-SIGN_PRIORITY = [4.0, 3.0, 2.0, 1.0]
+#: Weights of the component signs in the canonical-sign rule (the first non-zero of (w, x, y, z)
+#: decides): each exceeds the sum of those after it, so ``sign(q) . SIGN_WEIGHTS`` has that sign.
+SIGN_WEIGHTS = [8.0, 4.0, 2.0, 1.0]
 
 
 def normalize_vjp(xp: Any, q: Any, inv: Any, grad: Any) -> Any:

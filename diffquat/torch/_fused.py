@@ -36,7 +36,7 @@ _TABLES = {
     "m2q_forms": _fused.M2Q_FORMS,
     "m2q_forms_t": [list(row) for row in zip(*_fused.M2Q_FORMS, strict=True)],
     "m2q_base": _fused.M2Q_BASE,
-    "priority": _fused.SIGN_PRIORITY,
+    "sign_weights": _fused.SIGN_WEIGHTS,
     "components": [0.0, 1.0, 2.0, 3.0],
 }
 _cache: dict[tuple[str, torch.dtype, torch.device], Tensor] = {}
@@ -107,14 +107,15 @@ def _select(matrix: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """The candidate of the largest pivot, its signed inverse norm, and the pivot (..., 1).
 
     ``argmax`` returns the first maximum, so ties go to the lower index, as in the core. The canonical
-    sign is that of the first non-zero component in (w, x, y, z) order: the argmax of ``c != 0``
-    weighted by priority finds it, and the pivot's own component (>= 1) guarantees there is one."""
+    sign is that of the first non-zero component in (w, x, y, z) order, which is the sign of
+    ``8 sign(w) + 4 sign(x) + 2 sign(y) + sign(z)`` (each weight exceeds the sum of those after it);
+    the pivot's own component (>= 1) guarantees that this is not 0."""
     k = _split(torch.flatten(matrix, -2) @ _table("m2q_forms", matrix) + _table("m2q_base", matrix), 4, 4)
     pivot = torch.argmax(torch.diagonal(k, dim1=-2, dim2=-1), dim=-1, keepdim=True)
-    c = torch.take_along_dim(k, pivot[..., None], dim=-2)[..., 0, :]
-    leading = torch.argmax((c != 0) * _table("priority", matrix), dim=-1, keepdim=True)
+    c = torch.gather(k, -2, pivot[..., None].expand(*pivot.shape, 4))[..., 0, :]
+    leading = torch.sign(c) @ _table("sign_weights", matrix)
     norm = torch.rsqrt(torch.sum(c * c, dim=-1, keepdim=True))
-    return c, torch.copysign(norm, torch.take_along_dim(c, leading, dim=-1)), pivot
+    return c, torch.copysign(norm, leading[..., None]), pivot
 
 
 def _m2q_backward(matrix: Tensor, grad: Tensor, c: Tensor, inv: Tensor, pivot: Tensor) -> Tensor:
@@ -129,7 +130,7 @@ def _m2q_backward(matrix: Tensor, grad: Tensor, c: Tensor, inv: Tensor, pivot: T
 def _m2q_jvp(matrix: Tensor, tangent: Tensor) -> Tensor:
     c, inv, pivot = _select(matrix)
     tangent_k = _split(torch.flatten(tangent, -2) @ _table("m2q_forms", matrix), 4, 4)
-    tangent_c = torch.take_along_dim(tangent_k, pivot[..., None], dim=-2)[..., 0, :]
+    tangent_c = torch.gather(tangent_k, -2, pivot[..., None].expand(*pivot.shape, 4))[..., 0, :]
     return _fused.normalize_vjp(torch, c * inv, inv, tangent_c)
 
 
