@@ -348,9 +348,13 @@ def q2m_path(q: Any) -> Callable[..., Tensor]:
 
 def m2q_path(matrix: Any) -> Callable[..., Tensor]:
     """The implementation of ``matrix_to_quaternion`` for this call: the core formula under
-    ``torch.compile``, the small-batch Function for small eager batches, the columns Function for large
-    ones (no Triton kernel yet)."""
+    ``torch.compile``; the Triton kernels on CUDA; the small-batch Function for small eager batches,
+    the columns Function for large ones."""
     if not isinstance(matrix, Tensor) or torch.compiler.is_compiling():
         return _core.matrix_to_quaternion
+    if _triton_usable(matrix):
+        from . import _triton
+
+        return _triton.matrix_to_quaternion
     small = matrix.numel() <= 9 * MAX_FUSED_BATCH["matrix_to_quaternion"]
     return matrix_to_quaternion if small else matrix_to_quaternion_columns
