@@ -1,7 +1,8 @@
 """The torch fast paths (diffquat/torch/_fused.py) against the core formula they replace.
 
-The shared matrix already runs every case through the public functions, which take the gather
-Functions for small eager batches; this checks what it does not: every fused path and the core side by
+The shared matrix already runs every case through the public functions, which take the small-batch
+Functions for small eager batches (the old-style Function eagerly, the ``setup_context`` one under
+``torch.func``); this checks what it does not: every fused path and the core side by
 side (values and reverse-mode gradients, both storage orders, every edge case), forward mode (``jvp``,
 which ``gradcheck`` checks against finite differences), double backward and ``torch.func`` for the
 columns Function (the shared matrix's batches are too small to reach it), and the dispatch on batch
@@ -102,7 +103,7 @@ def test_columns_under_torch_func() -> None:
 
 
 def test_batch_size_dispatch() -> None:
-    """Small eager batches take the gather Functions; large ones the core formula (quaternion to
+    """Small eager batches take the small-batch Functions; large ones the core formula (quaternion to
     matrix) or the columns Function (matrix to quaternion)."""
     limit = _fused.MAX_FUSED_BATCH["quaternion_to_matrix"]
     small = torch.randn(limit, 4, requires_grad=True)

@@ -58,6 +58,21 @@ def _split(x: Tensor, rows: int, cols: int) -> Tensor:
     return x.reshape(*x.shape[:-1], rows, cols)
 
 
+# Below this many rows the small contractions with the constant forms are a multiply and a sum, not a
+# BLAS matmul: MKL runs even a (64, 16) @ (16, 10) product on its thread pool, whose threads then
+# spin-wait, a whole core busy for a while after every call, slowing whatever else runs on the machine
+# (a 2-core test run took 4x longer). From ~200 rows on, the multiply's (N, 16, 10) intermediate
+# passes ATen's 32768-element grain and goes parallel itself, so the (faster) matmul takes over.
+_BLAS_ROWS = 256
+
+
+def _contract(x: Tensor, forms: Tensor) -> Tensor:
+    """``x @ forms`` for ``x`` (..., k) and a constant ``forms`` (k, m)."""
+    if x.numel() >= _BLAS_ROWS * x.shape[-1]:
+        return x @ forms
+    return torch.sum(x[..., :, None] * forms, dim=-2)
+
+
 def _products(a: Tensor, b: Tensor) -> Tensor:
     """The 16 products ``a_i b_j`` (flat, row-major), shape (..., 16)."""
     return torch.flatten(a[..., :, None] * b[..., None, :], -2)
@@ -74,7 +89,7 @@ def _inverse_square_norm(n2: Tensor) -> Tensor:
 def _q2m(q: Tensor) -> tuple[Tensor, Tensor]:
     """``R`` (..., 3, 3) and ``1 / |q|^2`` (..., 1): one outer product, one matrix product with the
     constant forms, one fused multiply-add."""
-    forms = _products(q, q) @ _table("q2m_forms", q)
+    forms = _contract(_products(q, q), _table("q2m_forms", q))
     s = _inverse_square_norm(forms[..., 9:])
     return _split(torch.addcmul(_table("q2m_base", q), forms[..., :9], s), 3, 3), s
 
@@ -89,8 +104,8 @@ def q2m_backward(q: Tensor, grad: Tensor, s: Tensor | None = None) -> Tensor:
     1e-15 in float32 the dot product alone is at the range limit."""
     if s is None:
         s = _inverse_square_norm(torch.sum(q * q, dim=-1, keepdim=True))
-    h = _split(torch.flatten(grad, -2) @ _table("q2m_forms_sym", q), 4, 4)
-    hq = (h @ q[..., :, None])[..., 0]
+    h = _split(_contract(torch.flatten(grad, -2), _table("q2m_forms_sym", q)), 4, 4)
+    hq = torch.sum(h * q[..., None, :], dim=-1)
     return s * torch.addcmul(hq, s * torch.sum(q * hq, dim=-1, keepdim=True), q, value=-1.0)
 
 
@@ -99,7 +114,7 @@ def _q2m_jvp(q: Tensor, tangent: Tensor) -> Tensor:
     ``dq``, along ``q``, leaves ``R`` unchanged)."""
     s = _inverse_square_norm(torch.sum(q * q, dim=-1, keepdim=True))
     u = torch.addcmul(tangent, s * torch.sum(q * tangent, dim=-1, keepdim=True), q, value=-1.0)
-    d_forms = (_products(u, q) + _products(q, u)) @ _table("q2m_forms", q)[:, :9]
+    d_forms = _contract(_products(u, q) + _products(q, u), _table("q2m_forms", q)[:, :9])
     return _split(s * d_forms, 3, 3)
 
 
@@ -110,10 +125,12 @@ def _select(matrix: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     sign is that of the first non-zero component in (w, x, y, z) order, which is the sign of
     ``8 sign(w) + 4 sign(x) + 2 sign(y) + sign(z)`` (each weight exceeds the sum of those after it);
     the pivot's own component (>= 1) guarantees that this is not 0."""
-    k = _split(torch.flatten(matrix, -2) @ _table("m2q_forms", matrix) + _table("m2q_base", matrix), 4, 4)
+    k = _split(
+        _contract(torch.flatten(matrix, -2), _table("m2q_forms", matrix)) + _table("m2q_base", matrix), 4, 4
+    )
     pivot = torch.argmax(torch.diagonal(k, dim1=-2, dim2=-1), dim=-1, keepdim=True)
     c = torch.gather(k, -2, pivot[..., None].expand(*pivot.shape, 4))[..., 0, :]
-    leading = torch.sign(c) @ _table("sign_weights", matrix)
+    leading = torch.sum(torch.sign(c) * _table("sign_weights", matrix), dim=-1)
     norm = torch.rsqrt(torch.sum(c * c, dim=-1, keepdim=True))
     return c, torch.copysign(norm, leading[..., None]), pivot
 
@@ -124,12 +141,12 @@ def _m2q_backward(matrix: Tensor, grad: Tensor, c: Tensor, inv: Tensor, pivot: T
     grad_c = _fused.normalize_vjp(torch, c * inv, inv, grad)
     rows = (_table("components", matrix) == pivot).to(grad_c.dtype)
     grad_k = _products(rows, grad_c)
-    return _split(grad_k @ _table("m2q_forms_t", matrix), 3, 3)
+    return _split(_contract(grad_k, _table("m2q_forms_t", matrix)), 3, 3)
 
 
 def _m2q_jvp(matrix: Tensor, tangent: Tensor) -> Tensor:
     c, inv, pivot = _select(matrix)
-    tangent_k = _split(torch.flatten(tangent, -2) @ _table("m2q_forms", matrix), 4, 4)
+    tangent_k = _split(_contract(torch.flatten(tangent, -2), _table("m2q_forms", matrix)), 4, 4)
     tangent_c = torch.gather(tangent_k, -2, pivot[..., None].expand(*pivot.shape, 4))[..., 0, :]
     return _fused.normalize_vjp(torch, c * inv, inv, tangent_c)
 
