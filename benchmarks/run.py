@@ -518,8 +518,13 @@ def merge(paths: list[Path]) -> dict[str, Any]:
     }
     for r in runs:
         merged["ops"].update(r["ops"])
-    # Which run each table comes from (a later run of an operation replaces an earlier one).
-    merged["runs"] = [{"ops": list(r["ops"]), "seconds": r["seconds"], "load": r["load"]} for r in runs]
+    # Which run each table comes from (a later run of an operation replaces an earlier one); a report
+    # that is itself merged contributes the runs it lists.
+    merged["runs"] = [
+        run
+        for r in runs
+        for run in r.get("runs", [{"ops": list(r["ops"]), "seconds": r["seconds"], "load": r["load"]}])
+    ]
     return merged
 
 
