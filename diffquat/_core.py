@@ -192,7 +192,7 @@ def _m2q_scale(xp: Any, w: Any, x: Any, y: Any, z: Any) -> Any:
     return xp.where(_negative_canonical(w, x, y, z), -inv, inv)
 
 
-def _m2q_recover_scale(xp: Any, matrix: Any, q: Any) -> tuple[Any, Any, Any, Any, Any]:
+def _m2q_recover_scale(xp: Any, matrix: Any, q: Any) -> tuple[Any, Any, Any, Any]:
     """The choice of :func:`_m2q_choice` and the scale ``+-1 / |c|`` of :func:`_m2q_scale`, read back
     from the result ``q`` (scalar first) instead of rebuilding and renormalising the candidates:
     component k of candidate k is the pivot ``t_k`` itself, so ``q_k = t_k (+-1 / |c|)``. The pivot is
@@ -200,7 +200,7 @@ def _m2q_recover_scale(xp: Any, matrix: Any, q: Any) -> tuple[Any, Any, Any, Any
     use01, use0, use2, largest = _m2q_choice(xp, _m2q_pivots(matrix, 1.0))
     w, x, y, z = split_quaternion(q, True)
     q_k = xp.where(use01, xp.where(use0, w, x), xp.where(use2, y, z))
-    return use01, use0, use2, largest, q_k / largest
+    return use01, use0, use2, q_k / largest
 
 
 def matrix_to_quaternion_tangent(xp: Any, matrix: Any, q: Any, tangent: Any) -> Any:
@@ -227,7 +227,7 @@ def matrix_to_quaternion_cotangent(xp: Any, matrix: Any, q: Any, grad: Any) -> A
     The cotangent of the selected candidate, ``+-(g - q (q . g)) / |c|``, goes to that candidate only;
     each of its components is a pivot or one of the six sums and differences of off-diagonal entries,
     and those send it on to the matrix entries they are made of."""
-    use01, use0, use2, _, inv = _m2q_recover_scale(xp, matrix, q)
+    use01, use0, use2, inv = _m2q_recover_scale(xp, matrix, q)
     gc = inv[..., None] * (grad - q * xp.sum(q * grad, axis=-1, keepdims=True))
     gw, gx, gy, gz = split_quaternion(gc, True)
     chosen = (use01 & use0, use01 & ~use0, ~use01 & use2, ~use01 & ~use2)

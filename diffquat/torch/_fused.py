@@ -301,8 +301,8 @@ class MatrixToQuaternionColumns(torch.autograd.Function):
 # Measured on a 2-core CPU (float32, forward + backward, medians of interleaved runs): their cost is
 # the number of operations, ~2.5x fewer than autograd over the core formula at N = 64, but their
 # (N, 16) intermediates move more memory than the core's (N,) column passes. quaternion_to_matrix:
-# 1.6x faster than autograd over the core at N = 4096, even at 16384, so the core takes over above
-# 8192. matrix_to_quaternion: 1.6x faster than the columns Function at 1024, 1.4x slower at 4096.
+# 1.6x faster than autograd over the core at N = 4096, level with it at 16384, so the core takes over
+# above 8192. matrix_to_quaternion: 1.6x faster than the columns Function at 1024, 1.4x slower at 4096.
 MAX_FUSED_BATCH = {"quaternion_to_matrix": 8192, "matrix_to_quaternion": 2048}
 
 # Scalar-last (x, y, z, w) <-> scalar-first (w, x, y, z) positions.
