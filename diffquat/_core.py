@@ -192,6 +192,45 @@ def _m2q_scale(xp: Any, w: Any, x: Any, y: Any, z: Any) -> Any:
     return xp.where(_negative_canonical(w, x, y, z), -inv, inv)
 
 
+def matrix_to_quaternion_stacked(xp: Any, matrix: Any, *, scalar_first: bool = True) -> Any:
+    """:func:`matrix_to_quaternion` evaluated in another order, for compilers (XLA): the same map, equal
+    to rounding.
+
+    Where the core formula selects each of the four components and then the scale from them, this
+    selects whole ``(..., 4)`` candidates, and the scale ``+-1 / |c_k|`` as one per-rotation scalar
+    chosen from the four candidates' norms and signs. XLA:CPU compiles that into one loop for the
+    scalar and one for the output, where the component-wise form becomes four selection loops and a
+    concatenation, twice as slow (benchmarks/). Evaluated eagerly it costs more passes, so the eager
+    backends keep the core formula."""
+    pivots, candidates = _m2q_candidates(matrix, 1.0)
+    use01, use0, use2, _ = _m2q_choice(xp, pivots)
+
+    def choose(v0: Any, v1: Any, v2: Any, v3: Any) -> Any:
+        return xp.where(use01, xp.where(use0, v0, v1), xp.where(use2, v2, v3))
+
+    (t0, wx, wy, wz), (_, t1, xy, xz), (_, _, t2, yz), (_, _, _, t3) = candidates
+    sq_wx, sq_wy, sq_wz, sq_xy, sq_xz, sq_yz = wx * wx, wy * wy, wz * wz, xy * xy, xz * xz, yz * yz
+    norms = (
+        t0 * t0 + (sq_wx + sq_wy + sq_wz),
+        t1 * t1 + (sq_wx + sq_xy + sq_xz),
+        t2 * t2 + (sq_wy + sq_xy + sq_yz),
+        t3 * t3 + (sq_wz + sq_xz + sq_yz),
+    )
+    # The norm is chosen before the one division, and is at least the largest pivot squared (>= 1).
+    inv = 1.0 / xp.sqrt(choose(*norms))
+    # The canonical-sign rule of each candidate, shortened: component k of candidate k is its own pivot,
+    # positive for the chosen (largest) one, so the rule stops there. Candidate 0 (w = t0) never flips.
+    flip1 = wx < 0
+    flip2 = (wy < 0) | ((wy == 0) & (xy < 0))
+    flip3 = (wz < 0) | ((wz == 0) & ((xz < 0) | ((xz == 0) & (yz < 0))))
+    flip = (use01 & ~use0 & flip1) | (~use01 & ((use2 & flip2) | (~use2 & flip3)))
+    inv = xp.where(flip, -inv, inv)
+    c0, c1, c2, c3 = (join_quaternion(xp, *candidate, scalar_first) for candidate in candidates)
+    use01, use0, use2 = use01[..., None], use0[..., None], use2[..., None]
+    c = xp.where(use01, xp.where(use0, c0, c1), xp.where(use2, c2, c3))
+    return c * inv[..., None]
+
+
 def _m2q_recover_scale(xp: Any, matrix: Any, q: Any) -> tuple[Any, Any, Any, Any]:
     """The choice of :func:`_m2q_choice` and the scale ``+-1 / |c|`` of :func:`_m2q_scale`, read back
     from the result ``q`` (scalar first) instead of rebuilding and renormalising the candidates:
