@@ -117,6 +117,22 @@ def test_batch_size_dispatch() -> None:
     assert large_fn == "MatrixToQuaternionColumnsBackward"
 
 
+def test_batch_size_dispatch_without_gradient() -> None:
+    """quaternion_to_matrix takes the core formula from a smaller batch on where no gradient is
+    recorded (the Function's products cost more memory than its saved backward is worth there), and
+    gives the same values either way."""
+    limit = _fused.MAX_FUSED_BATCH_NO_GRAD["quaternion_to_matrix"]
+    assert limit < _fused.MAX_FUSED_BATCH["quaternion_to_matrix"]
+    small, large = torch.randn(limit, 4), torch.randn(limit + 1, 4)
+    assert _fused.q2m_path(small) is _fused.quaternion_to_matrix
+    assert _fused.q2m_path(large) is _core.quaternion_to_matrix
+    assert _fused.q2m_path(large.requires_grad_(True)) is _fused.quaternion_to_matrix
+    with torch.no_grad():
+        assert _fused.q2m_path(large) is _core.quaternion_to_matrix
+        fast = dq.quaternion_to_matrix(large)
+    torch.testing.assert_close(fast, dq.quaternion_to_matrix(large).detach(), rtol=1e-6, atol=1e-6)
+
+
 def _traced_ops(fn: object, x: torch.Tensor) -> list[str]:
     """The operations dynamo records for ``fn(x)`` (one graph: fullgraph=True fails on a break)."""
     graphs: list[torch.fx.GraphModule] = []
