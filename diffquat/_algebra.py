@@ -11,6 +11,7 @@ from typing import Any
 
 from ._core import (
     _negative_canonical,
+    computed_once,
     join_quaternion,
     matrix_to_quaternion,
     op,
@@ -236,7 +237,8 @@ def axis_angle_to_matrix(xp: Any, axis_angle: Any) -> Any:
 
     Through the unit quaternion (Rodrigues' formula in half angles), so it is exact and smooth at the
     zero vector, gradient included, and accurate at every angle."""
-    return quaternion_to_matrix(xp, axis_angle_to_quaternion(xp, axis_angle))
+    # The quaternion (behind cos and sin) is computed once, not again in each of the nine entries.
+    return quaternion_to_matrix(xp, computed_once(xp, axis_angle_to_quaternion(xp, axis_angle)))
 
 
 @op(matrix=(3, 3))

@@ -65,6 +65,18 @@ def stack_matrix(xp: Any, entries: list[Any]) -> Any:
     return xp.reshape(flat, (*flat.shape[:-1], 3, 3))
 
 
+def computed_once(xp: Any, x: Any) -> Any:
+    """``x`` itself, computed once where a compiler would otherwise recompute it in every output.
+
+    XLA fuses by recomputation: a value behind a transcendental (cos, sin) that feeds the nine entries
+    of a matrix is evaluated nine times per rotation, in each entry's loop (``axis_angle_to_matrix``
+    ran 2x slower than jaxlie's). A namespace that has ``optimization_barrier`` (the jax backend's)
+    keeps such a value as one array instead; for the others this is the identity, and it changes no
+    value or derivative anywhere."""
+    barrier = getattr(xp, "optimization_barrier", None)
+    return x if barrier is None else barrier(x)
+
+
 def _negative_canonical(w: Any, x: Any, y: Any, z: Any) -> Any:
     """True where the quaternion is not in canonical sign: w < 0, or w = 0 and the first non-zero of
     (x, y, z) is negative. This is scipy's ``as_quat(canonical=True)`` rule."""

@@ -17,7 +17,14 @@ import math
 from typing import Any
 
 from ._algebra import hamilton, nonzero_or_identity, safe_norm
-from ._core import join_quaternion, matrix_to_quaternion, op, quaternion_to_matrix, split_quaternion
+from ._core import (
+    computed_once,
+    join_quaternion,
+    matrix_to_quaternion,
+    op,
+    quaternion_to_matrix,
+    split_quaternion,
+)
 
 # scipy's threshold: a middle angle within this many radians of its singular value (0 or pi) is a
 # gimbal lock. The rotation then depends on one combination of the other two angles only, and the
@@ -80,7 +87,9 @@ def euler_angles_to_matrix(xp: Any, angles: Any, convention: str, *, degrees: bo
     ``convention`` and ``degrees`` as in ``euler_angles_to_quaternion`` (scipy's rule: upper case
     intrinsic, lower case extrinsic, all 12 axis sequences)."""
     parse_convention("euler_angles_to_matrix", convention)
-    return quaternion_to_matrix(xp, euler_angles_to_quaternion(xp, angles, convention, degrees=degrees))
+    # The quaternion (behind cos and sin) is computed once, not again in each of the nine entries.
+    q = computed_once(xp, euler_angles_to_quaternion(xp, angles, convention, degrees=degrees))
+    return quaternion_to_matrix(xp, q)
 
 
 def _quaternion_to_euler(

@@ -15,6 +15,7 @@ from .. import _algebra, _core, _euler
 from .. import _representations as _rep
 from .._backend import Backend, documented, shape_tuple
 from ._custom import custom_derivative
+from ._namespace import XP
 
 __all__ = [
     "axis_angle_to_matrix",
@@ -52,7 +53,7 @@ def _convert(fname: str, argname: str, x: Any) -> Array:
 
 
 _B = Backend(
-    xp=jnp,
+    xp=XP,
     convert=_convert,
     is_floating=lambda dtype: bool(jnp.issubdtype(dtype, jnp.floating)),
     astype=lambda x, dtype: x.astype(dtype),

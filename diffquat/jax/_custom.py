@@ -7,8 +7,9 @@ from collections.abc import Callable
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 from jax import Array
+
+from ._namespace import XP
 
 Formula = Callable[[Any, Array, Array, Array], Array]
 
@@ -26,13 +27,13 @@ def custom_derivative(
 
     @jax.custom_jvp
     def fn(x: Array) -> Array:
-        return forward(jnp, x)
+        return forward(XP, x)
 
     @fn.defjvp
     def fn_jvp(primals: tuple[Array], tangents: tuple[Array]) -> tuple[Array, Array]:
         (x,), (dx,) = primals, tangents
         y = fn(x)
-        return y, tangent(jnp, x, y, dx)
+        return y, tangent(XP, x, y, dx)
 
     def bound(xp: Any, x: Array) -> Array:
         return fn(x)
