@@ -517,22 +517,30 @@ def write(results: dict[str, Any], out_dir: Path) -> None:
 
 
 def merge(paths: list[Path]) -> dict[str, Any]:
-    """One report from runs of different operations (``--ops``) made side by side on one machine."""
-    runs = [json.loads(p.read_text()) for p in paths]
-    merged = {**runs[0], "ops": {}, "seconds": max(r["seconds"] for r in runs)}
-    merged["load"] = {
-        "before": max((r["load"]["before"] for r in runs), key=lambda x: x[0]),
-        "after": max((r["load"]["after"] for r in runs), key=lambda x: x[0]),
-    }
-    for r in runs:
-        merged["ops"].update(r["ops"])
-    # Which run each table comes from (a later run of an operation replaces an earlier one); a report
-    # that is itself merged contributes the runs it lists.
-    merged["runs"] = [
-        run
-        for r in runs
+    """One report from runs of different operations (``--ops``) made side by side on one machine.
+
+    A later run of an operation replaces an earlier one; a report that is itself merged contributes
+    the runs it lists. The report lists, and takes its run time and load from, only the runs whose
+    tables it still shows, each with the operations it shows from it."""
+    reports = [json.loads(p.read_text()) for p in paths]
+    runs = [
+        dict(run)
+        for r in reports
         for run in r.get("runs", [{"ops": list(r["ops"]), "seconds": r["seconds"], "load": r["load"]}])
     ]
+    ops: dict[str, Any] = {}
+    for r in reports:
+        ops.update(r["ops"])
+    # The last run of each operation is the one its tables come from.
+    source = {op: i for i, run in enumerate(runs) for op in run["ops"]}
+    for i, run in enumerate(runs):
+        run["ops"] = [op for op in run["ops"] if source[op] == i]
+    runs = [run for run in runs if run["ops"]]
+    merged = {**reports[0], "ops": ops, "runs": runs, "seconds": max(r["seconds"] for r in runs)}
+    merged["load"] = {
+        "before": max((r["load"]["before"] for r in runs), key=lambda x: x[0]),
+        "after": max((r["load"].get("after", r["load"]["before"]) for r in runs), key=lambda x: x[0]),
+    }
     return merged
 
 

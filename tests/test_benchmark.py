@@ -27,3 +27,32 @@ def test_quick_benchmark_writes_results(tmp_path: Path) -> None:
         assert row in text
     assert "### Accuracy on the shared test cases" in text
     assert (tmp_path / "results.png").stat().st_size > 0
+
+
+def test_merge_lists_only_the_runs_whose_tables_it_shows(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Merging reports: a later run of an operation replaces an earlier one, and the run list, the run
+    time and the load come only from the runs whose tables the report still shows."""
+    import json
+
+    monkeypatch.syspath_prepend(str(ROOT))
+    from benchmarks.run import merge
+
+    def report(name: str, ops: list[str], seconds: float, load: float) -> Path:
+        path = tmp_path / f"{name}.json"
+        data = {
+            "ops": dict.fromkeys(ops, name),
+            "seconds": seconds,
+            "load": {"before": [load] * 3, "after": [load] * 3},
+        }
+        path.write_text(json.dumps(data))
+        return path
+
+    first = merge([report("a", ["q2m", "m2q"], 100.0, 3.0), report("b", ["m2q"], 50.0, 0.5)])
+    (tmp_path / "first.json").write_text(json.dumps(first))
+    merged = merge([tmp_path / "first.json", report("c", ["q2m"], 60.0, 0.2)])
+    assert merged["ops"] == {"q2m": "c", "m2q": "b"}
+    assert [run["ops"] for run in merged["runs"]] == [["m2q"], ["q2m"]]
+    assert merged["seconds"] == 60.0
+    assert merged["load"]["before"][0] == 0.5  # run "a" (load 3) no longer shows a table
