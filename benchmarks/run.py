@@ -539,7 +539,7 @@ def merge(paths: list[Path]) -> dict[str, Any]:
     merged = {**reports[0], "ops": ops, "runs": runs, "seconds": max(r["seconds"] for r in runs)}
     merged["load"] = {
         "before": max((r["load"]["before"] for r in runs), key=lambda x: x[0]),
-        "after": max((r["load"].get("after", r["load"]["before"]) for r in runs), key=lambda x: x[0]),
+        "after": max((r["load"]["after"] for r in runs), key=lambda x: x[0]),
     }
     return merged
 

@@ -191,10 +191,14 @@ def _m2q_select(
     use01, use0, use2, _ = _m2q_choice(xp, pivots)
 
     def pick(i: int) -> Any:
-        c0, c1, c2, c3 = (candidate[i] for candidate in candidates)
-        return xp.where(use01, xp.where(use0, c0, c1), xp.where(use2, c2, c3))
+        return _m2q_pick(xp, use01, use0, use2, *(candidate[i] for candidate in candidates))
 
     return pick(0), pick(1), pick(2), pick(3)
+
+
+def _m2q_pick(xp: Any, use01: Any, use0: Any, use2: Any, v0: Any, v1: Any, v2: Any, v3: Any) -> Any:
+    """``v_k`` for the pivot ``k`` chosen by :func:`_m2q_choice` (whose first three results these are)."""
+    return xp.where(use01, xp.where(use0, v0, v1), xp.where(use2, v2, v3))
 
 
 def _m2q_scale(xp: Any, w: Any, x: Any, y: Any, z: Any) -> Any:
@@ -216,10 +220,6 @@ def matrix_to_quaternion_stacked(xp: Any, matrix: Any, *, scalar_first: bool = T
     backends keep the core formula."""
     pivots, candidates = _m2q_candidates(matrix, 1.0)
     use01, use0, use2, _ = _m2q_choice(xp, pivots)
-
-    def choose(v0: Any, v1: Any, v2: Any, v3: Any) -> Any:
-        return xp.where(use01, xp.where(use0, v0, v1), xp.where(use2, v2, v3))
-
     (t0, wx, wy, wz), (_, t1, xy, xz), (_, _, t2, yz), (_, _, _, t3) = candidates
     sq_wx, sq_wy, sq_wz, sq_xy, sq_xz, sq_yz = wx * wx, wy * wy, wz * wz, xy * xy, xz * xz, yz * yz
     norms = (
@@ -229,7 +229,7 @@ def matrix_to_quaternion_stacked(xp: Any, matrix: Any, *, scalar_first: bool = T
         t3 * t3 + (sq_wz + sq_xz + sq_yz),
     )
     # The norm is chosen before the one division, and is at least the largest pivot squared (>= 1).
-    inv = 1.0 / xp.sqrt(choose(*norms))
+    inv = 1.0 / xp.sqrt(_m2q_pick(xp, use01, use0, use2, *norms))
     # The canonical-sign rule of each candidate, shortened: component k of candidate k is its own pivot,
     # positive for the chosen (largest) one, so the rule stops there. Candidate 0 (w = t0) never flips.
     flip1 = wx < 0
@@ -237,9 +237,8 @@ def matrix_to_quaternion_stacked(xp: Any, matrix: Any, *, scalar_first: bool = T
     flip3 = (wz < 0) | ((wz == 0) & ((xz < 0) | ((xz == 0) & (yz < 0))))
     flip = (use01 & ~use0 & flip1) | (~use01 & ((use2 & flip2) | (~use2 & flip3)))
     inv = xp.where(flip, -inv, inv)
-    c0, c1, c2, c3 = (join_quaternion(xp, *candidate, scalar_first) for candidate in candidates)
-    use01, use0, use2 = use01[..., None], use0[..., None], use2[..., None]
-    c = xp.where(use01, xp.where(use0, c0, c1), xp.where(use2, c2, c3))
+    stacked = (join_quaternion(xp, *candidate, scalar_first) for candidate in candidates)
+    c = _m2q_pick(xp, use01[..., None], use0[..., None], use2[..., None], *stacked)
     return c * inv[..., None]
 
 
@@ -250,8 +249,7 @@ def _m2q_recover_scale(xp: Any, matrix: Any, q: Any) -> tuple[Any, Any, Any, Any
     selected before the division, and the largest pivot is at least 1."""
     use01, use0, use2, largest = _m2q_choice(xp, _m2q_pivots(matrix, 1.0))
     w, x, y, z = split_quaternion(q, True)
-    q_k = xp.where(use01, xp.where(use0, w, x), xp.where(use2, y, z))
-    return use01, use0, use2, q_k / largest
+    return use01, use0, use2, _m2q_pick(xp, use01, use0, use2, w, x, y, z) / largest
 
 
 def matrix_to_quaternion_tangent(xp: Any, matrix: Any, q: Any, tangent: Any) -> Any:
