@@ -98,16 +98,10 @@ def quaternion_to_matrix(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
         Rotation matrices, shape ``(..., 3, 3)``, acting on column vectors: ``R @ v`` rotates ``v`` from
         the local frame into the global frame (active rotation). Same dtype as ``q``.
     """
-    w, x, y, z = split_quaternion(q, scalar_first)
-    n2 = w * w + x * x + y * y + z * z
     # Normalise first, then use the unit formula (s = 2). Dividing by |q|^2 instead (s = 2 / n2) has
     # the same value but puts d(1/n2)/dn2 = -1/n2^2 on the reverse-mode chain, which overflows float32
     # for |q| below ~3e-10; through 1/sqrt(n2) every intermediate derivative stays near 1/n2.
-    # The zero quaternion takes inv = 0, which gives the identity; the double where keeps 1/sqrt (and
-    # its derivative) finite in the branch that is thrown away.
-    nonzero = n2 >= xp.finfo(n2.dtype).tiny
-    inv = xp.where(nonzero, 1.0 / xp.sqrt(xp.where(nonzero, n2, 1.0)), 0.0)
-    w, x, y, z = w * inv, x * inv, y * inv, z * inv
+    w, x, y, z, _ = _unit_components(xp, q, scalar_first)
     x2, y2, z2 = 2.0 * x, 2.0 * y, 2.0 * z
     xx, yy, zz = x2 * x, y2 * y, z2 * z
     xy, xz, yz = x2 * y, x2 * z, y2 * z
@@ -120,6 +114,47 @@ def quaternion_to_matrix(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
             xz - wy, yz + wx, 1.0 - (xx + yy),
         ],
     )  # fmt: skip
+
+
+def _unit_components(xp: Any, q: Any, scalar_first: bool) -> tuple[Any, Any, Any, Any, Any]:
+    """``q / |q|`` as components (w, x, y, z), and ``1 / |q|``. The zero quaternion (squared norm below
+    the smallest normal number) takes ``1 / |q| = 0``, so all components are 0 (the identity rotation,
+    with a zero gradient); the double where keeps 1/sqrt and its derivative finite in the branch that
+    is thrown away."""
+    w, x, y, z = split_quaternion(q, scalar_first)
+    n2 = w * w + x * x + y * y + z * z
+    nonzero = n2 >= xp.finfo(n2.dtype).tiny
+    inv = xp.where(nonzero, 1.0 / xp.sqrt(xp.where(nonzero, n2, 1.0)), 0.0)
+    return w * inv, x * inv, y * inv, z * inv, inv
+
+
+def quaternion_to_matrix_cotangent(xp: Any, q: Any, grad: Any) -> Any:
+    """Reverse-mode derivative of :func:`quaternion_to_matrix` (scalar first): ``dL/dq`` (..., 4) for
+    ``dL/dR`` (..., 3, 3), analytic, for eager backends that would otherwise record and replay the
+    formula's ~40 operations.
+
+    With ``u = q / |q|``, ``R = I + 2 A(u)`` for the quadratic form ``A`` of :func:`quaternion_to_matrix`,
+    so ``G . R = tr G + 2 u^T M u`` with ``M`` the symmetric 4 x 4 matrix linear in ``G`` below, and
+    ``g = 2 M u`` is its gradient in ``u``. The normalisation projects out the radial part:
+    ``dL/dq = (2 / |q|) (g - (u . g) u)``, 0 for the zero quaternion (``1 / |q|`` taken as 0)."""
+    w, x, y, z, inv = _unit_components(xp, q, True)
+    g00, g01, g02 = grad[..., 0, 0], grad[..., 0, 1], grad[..., 0, 2]
+    g10, g11, g12 = grad[..., 1, 0], grad[..., 1, 1], grad[..., 1, 2]
+    g20, g21, g22 = grad[..., 2, 0], grad[..., 2, 1], grad[..., 2, 2]
+    # The entries of 2 M: each off-diagonal product of u (wx, ..., yz) appears in two entries of R, with
+    # signs as in the formula; each square in the two diagonal entries that it is subtracted from.
+    wx, wy, wz = g21 - g12, g02 - g20, g10 - g01
+    xy, xz, yz = g01 + g10, g02 + g20, g12 + g21
+    trace = g00 + g11 + g22
+    gw = wx * x + wy * y + wz * z
+    gx = wx * w + xy * y + xz * z + 2.0 * (g00 - trace) * x
+    gy = wy * w + xy * x + yz * z + 2.0 * (g11 - trace) * y
+    gz = wz * w + xz * x + yz * y + 2.0 * (g22 - trace) * z
+    radial = w * gw + x * gx + y * gy + z * gz
+    s = 2.0 * inv
+    return join_quaternion(
+        xp, s * (gw - radial * w), s * (gx - radial * x), s * (gy - radial * y), s * (gz - radial * z), True
+    )
 
 
 @canonical

@@ -5,8 +5,8 @@ Functions for small eager batches (the old-style Function eagerly, the ``setup_c
 ``torch.func``); this checks what it does not: every fused path and the core side by
 side (values and reverse-mode gradients, both storage orders, every edge case), forward mode (``jvp``,
 which ``gradcheck`` checks against finite differences), double backward and ``torch.func`` for the
-columns Function (the shared matrix's batches are too small to reach it), and the dispatch on batch
-size."""
+columns Functions (the shared matrix's batches are too small to reach them), their evaluation by
+blocks of rows, and the dispatch on batch size."""
 
 from __future__ import annotations
 
@@ -23,8 +23,15 @@ PAIRS = [
     (_fused.quaternion_to_matrix, _core.quaternion_to_matrix, lambda q: q),
     (_fused.matrix_to_quaternion, _core.matrix_to_quaternion, oracle_quaternion_to_matrix),
     (_fused.matrix_to_quaternion_columns, _core.matrix_to_quaternion, oracle_quaternion_to_matrix),
+    (_fused.quaternion_to_matrix_columns, _core.quaternion_to_matrix, lambda q: q),
 ]
-PAIR_IDS = ["quaternion_to_matrix", "matrix_to_quaternion", "matrix_to_quaternion_columns"]
+PAIR_IDS = [
+    "quaternion_to_matrix",
+    "matrix_to_quaternion",
+    "matrix_to_quaternion_columns",
+    "quaternion_to_matrix_columns",
+]
+QUATERNION_INPUT = (_fused.quaternion_to_matrix, _fused.quaternion_to_matrix_columns)
 
 
 def _off_so3(n: int) -> torch.Tensor:
@@ -41,7 +48,7 @@ def _off_so3(n: int) -> torch.Tensor:
 def test_fused_equals_core(pair: int, case: str, scalar_first: bool) -> None:
     fused, core, make = PAIRS[pair]
     x = torch.tensor(make(CASES_BY_NAME[case].quaternions("float64")))
-    if not scalar_first and fused is _fused.quaternion_to_matrix:
+    if not scalar_first and fused in QUATERNION_INPUT:
         x = x[..., [1, 2, 3, 0]]
     a, b = x.clone().requires_grad_(True), x.clone().requires_grad_(True)
     out_fused = fused(torch, a, scalar_first=scalar_first)
@@ -61,6 +68,7 @@ def test_fused_forward_mode(scalar_first: bool) -> None:
     m = _off_so3(6).requires_grad_(True)
     for fn, x in (
         (_fused.quaternion_to_matrix, q),
+        (_fused.quaternion_to_matrix_columns, q),
         (_fused.matrix_to_quaternion, m),
         (_fused.matrix_to_quaternion_columns, m),
     ):
@@ -84,32 +92,98 @@ def test_columns_double_backward(case: str) -> None:
     assert torch.autograd.gradgradcheck(fn, m.reshape(-1, 3, 3)[:6].clone().requires_grad_(True))
 
 
-def test_columns_under_torch_func() -> None:
-    """``vmap`` (through ``generate_vmap_rule``), ``jacrev`` and ``jacfwd`` of the columns Function
+@pytest.mark.parametrize("case", [*EDGE_CASES, "norms", "zero"])
+def test_quaternion_columns_double_backward(case: str) -> None:
+    """The backward of quaternion_to_matrix's columns Function (the core's analytic cotangent) is made
+    of differentiable operations: second derivatives against finite differences at every edge case; at
+    norms from 1e-15 to 1e15, where finite differences of step 1e-6 mean nothing, equal to those of
+    autograd through the core formula; at the zero quaternion (no derivative there), 0."""
+    q = torch.tensor(CASES_BY_NAME[case].quaternions("float64")).reshape(-1, 4)[:6].clone()
+
+    def fn(t: torch.Tensor) -> torch.Tensor:
+        return _fused.quaternion_to_matrix_columns(torch, t)
+
+    if case not in ("norms", "zero"):
+        assert torch.autograd.gradgradcheck(fn, q.requires_grad_(True))
+        return
+    rng = np.random.default_rng(2)
+    cot, direction = torch.tensor(rng.normal(size=(len(q), 3, 3))), torch.tensor(rng.normal(size=q.shape))
+    second = []
+    for f in (fn, lambda t: _core.quaternion_to_matrix(torch, t)):
+        x = q.clone().requires_grad_(True)
+        (g,) = torch.autograd.grad(f(x), x, cot, create_graph=True)
+        second.append(torch.autograd.grad(g, x, direction)[0])
+    torch.testing.assert_close(second[0], second[1], rtol=1e-9, atol=0)
+    if case == "zero":
+        assert torch.equal(second[0], torch.zeros_like(q))
+
+
+COLUMNS = [
+    (_fused.matrix_to_quaternion_columns, _core.matrix_to_quaternion, (3, 3), (4,)),
+    (_fused.quaternion_to_matrix_columns, _core.quaternion_to_matrix, (4,), (3, 3)),
+]
+
+
+# jacfwd goes through a torch module that still uses torch.jit.script (see test_fused_forward_mode).
+@pytest.mark.filterwarnings("ignore:`torch.jit.script` is deprecated:DeprecationWarning")
+@pytest.mark.parametrize("pair", range(len(COLUMNS)), ids=["matrix_to_quaternion", "quaternion_to_matrix"])
+def test_columns_under_torch_func(pair: int) -> None:
+    """``vmap`` (through ``generate_vmap_rule``), ``jacrev`` and ``jacfwd`` of each columns Function
     equal those of the core formula."""
-    m = _off_so3(5)
+    columns, core, input_shape, output_shape = COLUMNS[pair]
+    if input_shape == (3, 3):
+        x = _off_so3(5)
+    else:
+        x = torch.tensor(CASES_BY_NAME["random"].quaternions("float64")[:5]) * torch.arange(1.0, 6.0)[:, None]
 
-    def columns(t: torch.Tensor) -> torch.Tensor:
-        return _fused.matrix_to_quaternion_columns(torch, t)
+    def ours_fn(t: torch.Tensor) -> torch.Tensor:
+        return columns(torch, t)
 
-    def core(t: torch.Tensor) -> torch.Tensor:
-        return _core.matrix_to_quaternion(torch, t)
+    def core_fn(t: torch.Tensor) -> torch.Tensor:
+        return core(torch, t)
 
     for transform in (torch.func.jacrev, torch.func.jacfwd):
-        ours = torch.func.vmap(transform(columns))(m)
-        theirs = torch.func.vmap(transform(core))(m)
-        assert ours.shape == (5, 4, 3, 3)
+        ours = torch.func.vmap(transform(ours_fn))(x)
+        theirs = torch.func.vmap(transform(core_fn))(x)
+        assert ours.shape == (5, *output_shape, *input_shape)
         torch.testing.assert_close(ours, theirs, rtol=1e-10, atol=1e-10)
 
 
+@pytest.mark.parametrize("scalar_first", [True, False])
+def test_evaluation_by_blocks(monkeypatch: pytest.MonkeyPatch, scalar_first: bool) -> None:
+    """Large batches are evaluated by blocks of rows (``BLOCK_ROWS``, shrunk here to 4 so that a small
+    batch spans several blocks and a partial last one): values and gradients equal the core formula's
+    over several leading dimensions, forward and backward, with and without a recorded gradient."""
+    monkeypatch.setattr(_fused, "BLOCK_ROWS", 4)
+    rng = np.random.default_rng(1)
+    q = torch.tensor(rng.normal(size=(3, 5, 4)))
+    q[1, 2] = 0.0  # the zero quaternion, in a middle block
+    m = torch.tensor(oracle_quaternion_to_matrix(rng.normal(size=(3, 5, 4)))) + 0.1  # off SO(3)
+    order, every = ([0, 1, 2, 3] if scalar_first else [1, 2, 3, 0]), slice(None)
+    for columns, core, x, x_in, out_order, grad_order in (
+        (_fused.quaternion_to_matrix_columns, _core.quaternion_to_matrix, q, q[..., order], every, order),
+        (_fused.matrix_to_quaternion_columns, _core.matrix_to_quaternion, m, m, order, every),
+    ):
+        a, b = x_in.clone().requires_grad_(True), x.clone().requires_grad_(True)
+        out = columns(torch, a, scalar_first=scalar_first)
+        expected = core(torch, b)[..., out_order]
+        torch.testing.assert_close(out, expected, rtol=0, atol=1e-15)
+        cot = torch.tensor(rng.normal(size=tuple(out.shape)))
+        (g_ours,) = torch.autograd.grad(out, a, cot)
+        (g_core,) = torch.autograd.grad(expected, b, cot)
+        torch.testing.assert_close(g_ours, g_core[..., grad_order], rtol=1e-12, atol=1e-12)
+    with torch.no_grad():
+        blocks = _fused.quaternion_to_matrix_blocks(torch, q[..., order], scalar_first=scalar_first)
+    torch.testing.assert_close(blocks, _core.quaternion_to_matrix(torch, q), rtol=0, atol=1e-15)
+
+
 def test_batch_size_dispatch() -> None:
-    """Small eager batches take the small-batch Functions; large ones the core formula (quaternion to
-    matrix) or the columns Function (matrix to quaternion)."""
+    """Small eager batches take the small-batch Functions, large ones the columns Functions."""
     limit = _fused.MAX_FUSED_BATCH["quaternion_to_matrix"]
     small = torch.randn(limit, 4, requires_grad=True)
     large = torch.randn(limit + 1, 4, requires_grad=True)
     assert type(dq.quaternion_to_matrix(small).grad_fn).__name__ == "QuaternionToMatrixBackward"
-    assert "QuaternionToMatrix" not in type(dq.quaternion_to_matrix(large).grad_fn).__name__
+    assert type(dq.quaternion_to_matrix(large).grad_fn).__name__ == "QuaternionToMatrixColumnsBackward"
     limit = _fused.MAX_FUSED_BATCH["matrix_to_quaternion"]
     matrices = dq.quaternion_to_matrix(torch.randn(limit + 1, 4)).requires_grad_(True)
     assert type(dq.matrix_to_quaternion(matrices[:limit]).grad_fn).__name__ == "MatrixToQuaternionBackward"
@@ -118,17 +192,17 @@ def test_batch_size_dispatch() -> None:
 
 
 def test_batch_size_dispatch_without_gradient() -> None:
-    """quaternion_to_matrix takes the core formula from a smaller batch on where no gradient is
-    recorded (the Function's products cost more memory than its saved backward is worth there), and
-    gives the same values either way."""
+    """quaternion_to_matrix takes the core formula (by blocks) from a smaller batch on where no
+    gradient is recorded (the Function's products cost more memory than its saved backward is worth
+    there), and gives the same values either way."""
     limit = _fused.MAX_FUSED_BATCH_NO_GRAD["quaternion_to_matrix"]
     assert limit < _fused.MAX_FUSED_BATCH["quaternion_to_matrix"]
     small, large = torch.randn(limit, 4), torch.randn(limit + 1, 4)
     assert _fused.q2m_path(small) is _fused.quaternion_to_matrix
-    assert _fused.q2m_path(large) is _core.quaternion_to_matrix
+    assert _fused.q2m_path(large) is _fused.quaternion_to_matrix_blocks
     assert _fused.q2m_path(large.requires_grad_(True)) is _fused.quaternion_to_matrix
     with torch.no_grad():
-        assert _fused.q2m_path(large) is _core.quaternion_to_matrix
+        assert _fused.q2m_path(large) is _fused.quaternion_to_matrix_blocks
         fast = dq.quaternion_to_matrix(large)
     torch.testing.assert_close(fast, dq.quaternion_to_matrix(large).detach(), rtol=1e-6, atol=1e-6)
 

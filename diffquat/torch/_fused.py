@@ -6,9 +6,10 @@ with the constant forms of :mod:`diffquat._fused`: seven operations forward and 
 operations plus their derivatives, each a few microseconds of dispatch at small N. The backward is
 analytic and keeps only small tensors beside the input (1 / |q|^2, or the selected candidate).
 
-Large batches of ``matrix_to_quaternion``: the "columns" Function, the core formula forward and its
-analytic derivative (``_core.matrix_to_quaternion_cotangent``) backward, both on whole columns, with a
-vectorised selection in place of ``torch.where`` (see ``_EagerTorch``).
+Large batches: the "columns" Functions, the core formula forward and its analytic derivative
+(``_core.quaternion_to_matrix_cotangent``, ``_core.matrix_to_quaternion_cotangent``) backward, both on
+whole columns, with a vectorised selection in place of ``torch.where`` (see ``_EagerTorch``), and
+evaluated by blocks of rows (see ``BLOCK_ROWS``).
 
 Every backward is made of differentiable torch operations, so double backward (``gradgradcheck``,
 Hessians) differentiates it; ``jvp`` gives forward mode; ``generate_vmap_rule`` gives
@@ -21,6 +22,7 @@ formula instead, so that inductor fuses it with the user's surrounding code.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -244,42 +246,130 @@ class MatrixToQuaternionTransformable(_SavesInput):
 
 
 class _EagerTorch:
-    """``torch`` as the core's array namespace, with a ``where`` that is fast in eager mode.
+    """``torch`` as the core's array namespace, with a ``where`` that is fast in eager mode, for one
+    evaluation of a core formula (make one per call: it keeps the masks it has seen).
 
     ``torch.where`` on the CPU runs about 25x slower than a multiply (it is not vectorised; measured
     on float32 at N = 262144), and the core selects with it in every conversion. Every ``where`` of
     the core chooses between finite branches (its numerical rule), and for finite ``a``, ``b``,
     ``lerp(b, a, 1) = a`` and ``lerp(b, a, 0) = b`` exactly (up to the sign of a zero), so ``lerp``
     with the condition as its weight is the same selection in one vectorised pass. It is
-    differentiable in ``a`` and ``b`` (the weight is a constant), so double backward goes through it."""
+    differentiable in ``a`` and ``b`` (the weight is a constant), so double backward goes through it.
+    The core selects with the same few masks many times (matrix_to_quaternion: 4 masks, ~50 selections
+    forward and backward), so each mask's 0/1 weight is converted once and kept."""
+
+    def __init__(self) -> None:
+        self._weights: dict[int, tuple[Tensor, Tensor]] = {}
 
     def __getattr__(self, name: str) -> Any:
         return getattr(torch, name)
 
-    @staticmethod
-    def where(condition: Tensor, a: Tensor | float, b: Tensor | float) -> Tensor:
+    def _weight(self, condition: Tensor, dtype: torch.dtype) -> Tensor:
+        # Keyed by identity; the entry keeps the mask alive, so its id is not reused meanwhile.
+        kept = self._weights.get(id(condition))
+        if kept is None or kept[0] is not condition or kept[1].dtype != dtype:
+            kept = (condition, condition.to(dtype))
+            self._weights[id(condition)] = kept
+        return kept[1]
+
+    def where(self, condition: Tensor, a: Tensor | float, b: Tensor | float) -> Tensor:
         like = a if isinstance(a, Tensor) else b
         assert isinstance(like, Tensor)
+        weight = self._weight(condition, like.dtype)
         if isinstance(b, float) and b == 0.0:
-            return like * condition.to(like.dtype)  # a * 1 = a and a * 0 = 0 for finite a: one pass
+            return like * weight  # a * 1 = a and a * 0 = 0 for finite a: one pass
         start = b if isinstance(b, Tensor) else torch.tensor(b, dtype=like.dtype, device=like.device)
         end = a if isinstance(a, Tensor) else torch.tensor(a, dtype=like.dtype, device=like.device)
-        return torch.lerp(start, end, condition.to(like.dtype))
+        return torch.lerp(start, end, weight)
 
 
-_EAGER = _EagerTorch()
+# Rows per block of the large-batch paths. Over a whole large batch, the core formulas' ~40 to ~100
+# column temporaries pile up to many times the input's size (1.6 GB for matrix_to_quaternion's forward
+# + backward at N = 4194304), and malloc serves such a peak with fresh pages, a page fault per 4 KB,
+# often on every call (glibc gives memory back to the system once more than twice its largest freed
+# block is free). By blocks, the temporaries are those of one block, reused by the next from cache.
+# Measured on a 2-core CPU (float32, medians over repeats, several processes): at N = 4194304 forward
+# + backward 3x faster for matrix_to_quaternion and 2.5x for quaternion_to_matrix; at N = 262144 from
+# level to 1.3x faster, with less variance between processes. Each elementwise operation on a block of
+# 65536 rows still spans ATen's grain and runs on all threads; blocks of 32768 measured up to 1.5x
+# slower forward + backward. quaternion_to_matrix's forward alone (no gradient recorded) takes blocks
+# of half that size: with 65536 its block temporaries and its output together crossed glibc's threshold
+# in some processes, and every call faulted its output in again (10x slower).
+BLOCK_ROWS = 65536
+
+
+def _by_blocks(
+    fn: Callable[..., Tensor], batch: torch.Size, tail: tuple[int, ...], *arrays: Tensor, block: int = 0
+) -> Tensor:
+    """``fn(*arrays)``, a function of rows, evaluated by blocks of ``block`` (default ``BLOCK_ROWS``)
+    rows into one result.
+
+    Every array has the leading dimensions ``batch``; each row of the result has the shape ``tail``.
+    In one call where the batch fits in a block, under ``torch.func`` transforms (the result buffer
+    would not be batched) and where autograd records (double backward differentiates ``fn`` whole)."""
+    rows, block = math.prod(batch), block or BLOCK_ROWS
+    if rows <= block or torch.is_grad_enabled() or torch._C._are_functorch_transforms_active():
+        return fn(*arrays)
+    flat = [a.reshape(rows, *a.shape[len(batch) :]) for a in arrays]
+    out = torch.empty((rows, *tail), dtype=arrays[0].dtype, device=arrays[0].device)
+    for start in range(0, rows, block):
+        out[start : start + block] = fn(*(a[start : start + block] for a in flat))
+    return out.reshape(*batch, *tail)
+
+
+def _q2m_columns(q: Tensor) -> Tensor:
+    return _core.quaternion_to_matrix(_EagerTorch(), q)
+
+
+def _q2m_cotangent(q: Tensor, grad: Tensor) -> Tensor:
+    return _core.quaternion_to_matrix_cotangent(_EagerTorch(), q, grad)
+
+
+def _m2q_columns(matrix: Tensor) -> Tensor:
+    return _core.matrix_to_quaternion(_EagerTorch(), matrix)
+
+
+def _m2q_cotangent(matrix: Tensor, q: Tensor, grad: Tensor) -> Tensor:
+    return _core.matrix_to_quaternion_cotangent(_EagerTorch(), matrix, q, grad)
+
+
+class QuaternionToMatrixColumns(torch.autograd.Function):
+    """The core formula forward and its analytic derivative backward
+    (``_core.quaternion_to_matrix_cotangent``), by blocks of rows. Keeps only the input."""
+
+    generate_vmap_rule = True
+
+    @staticmethod
+    def forward(q: Tensor) -> Tensor:
+        return _by_blocks(_q2m_columns, q.shape[:-1], (3, 3), q)
+
+    @staticmethod
+    def setup_context(ctx: Any, inputs: tuple[Tensor], output: Tensor) -> None:
+        ctx.save_for_backward(inputs[0])
+        ctx.save_for_forward(inputs[0])
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> Tensor:
+        (q,) = ctx.saved_tensors
+        return _by_blocks(_q2m_cotangent, q.shape[:-1], (4,), q, grad)
+
+    @staticmethod
+    def jvp(ctx: Any, tangent: Tensor) -> Tensor:
+        (q,) = ctx.saved_tensors
+        return _q2m_jvp(q, tangent)
 
 
 class MatrixToQuaternionColumns(torch.autograd.Function):
     """The core formula forward and its analytic derivatives (``_core.matrix_to_quaternion_cotangent``
-    and ``_tangent``): only the selected candidate is differentiated. Keeps the input and the output
-    (both formulas use the quaternion; recomputing it would cost a forward pass)."""
+    and ``_tangent``), by blocks of rows: only the selected candidate is differentiated. Keeps the
+    input and the output (both derivatives use the quaternion; recomputing it would cost a forward
+    pass)."""
 
     generate_vmap_rule = True
 
     @staticmethod
     def forward(matrix: Tensor) -> Tensor:
-        return _core.matrix_to_quaternion(_EAGER, matrix)
+        return _by_blocks(_m2q_columns, matrix.shape[:-2], (4,), matrix)
 
     @staticmethod
     def setup_context(ctx: Any, inputs: tuple[Tensor], output: Tensor) -> None:
@@ -289,12 +379,12 @@ class MatrixToQuaternionColumns(torch.autograd.Function):
     @staticmethod
     def backward(ctx: Any, grad: Tensor) -> Tensor:
         matrix, q = ctx.saved_tensors
-        return _core.matrix_to_quaternion_cotangent(_EAGER, matrix, q, grad)
+        return _by_blocks(_m2q_cotangent, matrix.shape[:-2], (3, 3), matrix, q, grad)
 
     @staticmethod
     def jvp(ctx: Any, tangent: Tensor) -> Tensor:
         matrix, q = ctx.saved_tensors
-        return _core.matrix_to_quaternion_tangent(_EAGER, matrix, q, tangent)
+        return _core.matrix_to_quaternion_tangent(_EagerTorch(), matrix, q, tangent)
 
 
 # Largest batch (number of rotations) that takes the small-batch Functions above, by operation.
@@ -303,7 +393,7 @@ class MatrixToQuaternionColumns(torch.autograd.Function):
 # (N, 16) intermediates move more memory than the core's (N,) column passes. quaternion_to_matrix:
 # 1.6x faster than autograd over the core at N = 4096, level with it at 16384, so the core takes over
 # above 8192. matrix_to_quaternion: 1.6x faster than the columns Function at 1024, 1.4x slower at 4096.
-MAX_FUSED_BATCH = {"quaternion_to_matrix": 8192, "matrix_to_quaternion": 2048}
+MAX_FUSED_BATCH = {"quaternion_to_matrix": 4096, "matrix_to_quaternion": 2048}
 # Without a gradient to build, quaternion_to_matrix's Function pays for a backward it never runs: its
 # (N, 16) products move 4x the memory of the core's columns. Forward only (same machine and method) it
 # is 1.3x faster than the core at N = 1024, level at 2048 and 2x slower at 4096, so above 1024 a call
@@ -334,6 +424,22 @@ def matrix_to_quaternion(xp: Any, matrix: Tensor, *, scalar_first: bool = True) 
     return q if scalar_first else q[..., TO_LAST]
 
 
+def quaternion_to_matrix_columns(xp: Any, q: Tensor, *, scalar_first: bool = True) -> Tensor:
+    """:class:`QuaternionToMatrixColumns` in either storage order."""
+    r: Tensor = QuaternionToMatrixColumns.apply(q if scalar_first else q[..., TO_FIRST])  # type: ignore[no-untyped-call]
+    return r
+
+
+def quaternion_to_matrix_blocks(xp: Any, q: Tensor, *, scalar_first: bool = True) -> Tensor:
+    """The core formula by blocks of rows, for a call that records no gradient."""
+
+    def rows(t: Tensor) -> Tensor:
+        return _core.quaternion_to_matrix(_EagerTorch(), t, scalar_first=scalar_first)
+
+    with torch.no_grad():  # q2m_path takes this only where no gradient is recorded
+        return _by_blocks(rows, q.shape[:-1], (3, 3), q, block=BLOCK_ROWS // 2)
+
+
 def matrix_to_quaternion_columns(xp: Any, matrix: Tensor, *, scalar_first: bool = True) -> Tensor:
     """:class:`MatrixToQuaternionColumns` in either storage order."""
     q: Tensor = MatrixToQuaternionColumns.apply(matrix)  # type: ignore[no-untyped-call]
@@ -342,6 +448,8 @@ def matrix_to_quaternion_columns(xp: Any, matrix: Tensor, *, scalar_first: bool 
 
 # The backend validates arguments by the core function's name.
 matrix_to_quaternion_columns.__name__ = "matrix_to_quaternion"
+quaternion_to_matrix_columns.__name__ = "quaternion_to_matrix"
+quaternion_to_matrix_blocks.__name__ = "quaternion_to_matrix"
 
 
 def _triton_usable(x: Tensor) -> bool:
@@ -357,21 +465,20 @@ def _triton_usable(x: Tensor) -> bool:
 
 def q2m_path(q: Any) -> Callable[..., Tensor]:
     """The implementation of ``quaternion_to_matrix`` for this call: the core formula under
-    ``torch.compile`` (inductor fuses it with the user's code) and for large CPU batches (smaller ones
-    too where no gradient is recorded); the Triton kernels on CUDA; the fused Function for small eager
-    batches."""
+    ``torch.compile`` (inductor fuses it with the user's code); the Triton kernels on CUDA; for eager
+    batches, the fused Function for small ones, the columns Function for large ones, and where no
+    gradient is recorded, the core formula by blocks from a smaller batch size on."""
     if not isinstance(q, Tensor) or torch.compiler.is_compiling():
         return _core.quaternion_to_matrix
     if _triton_usable(q):
         from . import _triton
 
         return _triton.quaternion_to_matrix
-    limit = (
-        MAX_FUSED_BATCH["quaternion_to_matrix"]
-        if _builds_gradient(q)
-        else MAX_FUSED_BATCH_NO_GRAD["quaternion_to_matrix"]
-    )
-    return quaternion_to_matrix if q.numel() <= 4 * limit else _core.quaternion_to_matrix
+    if _builds_gradient(q):
+        small = q.numel() <= 4 * MAX_FUSED_BATCH["quaternion_to_matrix"]
+        return quaternion_to_matrix if small else quaternion_to_matrix_columns
+    small = q.numel() <= 4 * MAX_FUSED_BATCH_NO_GRAD["quaternion_to_matrix"]
+    return quaternion_to_matrix if small else quaternion_to_matrix_blocks
 
 
 def _builds_gradient(x: Tensor) -> bool:
