@@ -151,10 +151,11 @@ def test_columns_under_torch_func(pair: int) -> None:
 
 @pytest.mark.parametrize("scalar_first", [True, False])
 def test_evaluation_by_blocks(monkeypatch: pytest.MonkeyPatch, scalar_first: bool) -> None:
-    """Large batches are evaluated by blocks of rows (``BLOCK_ROWS``, shrunk here to 4 so that a small
-    batch spans several blocks and a partial last one): values and gradients equal the core formula's
-    over several leading dimensions, forward and backward, with and without a recorded gradient."""
+    """Very large batches are evaluated by blocks of rows (``BLOCK_ROWS``, shrunk here to 4 so that a
+    small batch spans several blocks and a partial last one): values and gradients equal the core
+    formula's over several leading dimensions, forward and backward, with and without a gradient."""
     monkeypatch.setattr(_fused, "BLOCK_ROWS", 4)
+    monkeypatch.setattr(_fused, "BLOCKS_FROM", 8)
     rng = np.random.default_rng(1)
     q = torch.tensor(rng.normal(size=(3, 5, 4)))
     q[1, 2] = 0.0  # the zero quaternion, in a middle block

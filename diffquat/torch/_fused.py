@@ -283,37 +283,36 @@ class _EagerTorch:
         return torch.lerp(start, end, weight)
 
 
-# Rows per block of the large-batch paths. Over a whole large batch, the core formulas' ~40 to ~100
-# column temporaries pile up to many times the input's size (1.6 GB for matrix_to_quaternion's forward
-# + backward at N = 4194304), and malloc serves such a peak with fresh pages, a page fault per 4 KB,
-# often on every call (glibc gives memory back to the system once more than twice its largest freed
+# Evaluation by blocks of rows, for very large batches. Over a whole batch, the core formulas' ~40 to
+# ~100 column temporaries pile up to many times the input's size (1.6 GB for matrix_to_quaternion's
+# forward + backward at N = 4194304), and malloc serves such a peak with fresh pages, a page fault per
+# 4 KB, on every call (glibc gives memory back to the system once more than twice its largest freed
 # block is free). By blocks, the temporaries are those of one block, reused by the next from cache.
-# Measured on a 2-core CPU (float32, medians over repeats, several processes): at N = 4194304 forward
-# + backward 3x faster for matrix_to_quaternion and 2.5x for quaternion_to_matrix; at N = 262144 from
-# level to 1.3x faster, with less variance between processes. Each elementwise operation on a block of
-# 65536 rows still spans ATen's grain and runs on all threads; blocks of 32768 measured up to 1.5x
-# slower forward + backward. quaternion_to_matrix's forward alone (no gradient recorded) takes blocks
-# of half that size: with 65536 its block temporaries and its output together crossed glibc's threshold
-# in some processes, and every call faulted its output in again (10x slower).
+# Measured on a 2-core CPU (float32, several processes, outputs kept alive across calls as a training
+# loop does): at N = 4194304, 3-6x faster forward and 2-3x forward + backward; at N = 262144 level or
+# slower (the fault pattern then depends on the process's earlier allocations more than on blocks), so
+# batches up to BLOCKS_FROM rows run whole. Each elementwise operation on a block of 65536 rows still
+# spans ATen's grain and runs on all threads; 32768 and 131072 measured about the same.
 BLOCK_ROWS = 65536
+BLOCKS_FROM = 4 * BLOCK_ROWS
 
 
 def _by_blocks(
-    fn: Callable[..., Tensor], batch: torch.Size, tail: tuple[int, ...], *arrays: Tensor, block: int = 0
+    fn: Callable[..., Tensor], batch: torch.Size, tail: tuple[int, ...], *arrays: Tensor
 ) -> Tensor:
-    """``fn(*arrays)``, a function of rows, evaluated by blocks of ``block`` (default ``BLOCK_ROWS``)
-    rows into one result.
+    """``fn(*arrays)``, a function of rows, evaluated by blocks of ``BLOCK_ROWS`` rows into one result
+    where the batch has more than ``BLOCKS_FROM`` rows.
 
     Every array has the leading dimensions ``batch``; each row of the result has the shape ``tail``.
-    In one call where the batch fits in a block, under ``torch.func`` transforms (the result buffer
-    would not be batched) and where autograd records (double backward differentiates ``fn`` whole)."""
-    rows, block = math.prod(batch), block or BLOCK_ROWS
-    if rows <= block or torch.is_grad_enabled() or torch._C._are_functorch_transforms_active():
+    In one call for smaller batches, under ``torch.func`` transforms (the result buffer would not be
+    batched) and where autograd records (double backward differentiates ``fn`` whole)."""
+    rows = math.prod(batch)
+    if rows <= BLOCKS_FROM or torch.is_grad_enabled() or torch._C._are_functorch_transforms_active():
         return fn(*arrays)
     flat = [a.reshape(rows, *a.shape[len(batch) :]) for a in arrays]
     out = torch.empty((rows, *tail), dtype=arrays[0].dtype, device=arrays[0].device)
-    for start in range(0, rows, block):
-        out[start : start + block] = fn(*(a[start : start + block] for a in flat))
+    for start in range(0, rows, BLOCK_ROWS):
+        out[start : start + BLOCK_ROWS] = fn(*(a[start : start + BLOCK_ROWS] for a in flat))
     return out.reshape(*batch, *tail)
 
 
@@ -437,7 +436,7 @@ def quaternion_to_matrix_blocks(xp: Any, q: Tensor, *, scalar_first: bool = True
         return _core.quaternion_to_matrix(_EagerTorch(), t, scalar_first=scalar_first)
 
     with torch.no_grad():  # q2m_path takes this only where no gradient is recorded
-        return _by_blocks(rows, q.shape[:-1], (3, 3), q, block=BLOCK_ROWS // 2)
+        return _by_blocks(rows, q.shape[:-1], (3, 3), q)
 
 
 def matrix_to_quaternion_columns(xp: Any, matrix: Tensor, *, scalar_first: bool = True) -> Tensor:
