@@ -430,10 +430,12 @@ def quaternion_to_matrix_columns(xp: Any, q: Tensor, *, scalar_first: bool = Tru
 
 
 def quaternion_to_matrix_blocks(xp: Any, q: Tensor, *, scalar_first: bool = True) -> Tensor:
-    """The core formula by blocks of rows, for a call that records no gradient."""
+    """The core formula (by blocks of rows where the batch is very large), for a call that records no
+    gradient. Over plain ``torch``: with only two selections, the lerp namespace measured no faster
+    forward (and 5% slower at N = 4096)."""
 
     def rows(t: Tensor) -> Tensor:
-        return _core.quaternion_to_matrix(_EagerTorch(), t, scalar_first=scalar_first)
+        return _core.quaternion_to_matrix(xp, t, scalar_first=scalar_first)
 
     with torch.no_grad():  # q2m_path takes this only where no gradient is recorded
         return _by_blocks(rows, q.shape[:-1], (3, 3), q)
