@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import Any
 
 from ._core import (
+    Conversion,
     _negative_canonical,
     computed_once,
     join_quaternion,
@@ -232,17 +233,17 @@ def quaternion_to_axis_angle(xp: Any, q: Any, *, scalar_first: bool = True) -> A
 
 
 @op(axis_angle=(3,))
-def axis_angle_to_matrix(xp: Any, axis_angle: Any) -> Any:
+def axis_angle_to_matrix(xp: Any, axis_angle: Any, *, to_matrix: Conversion = quaternion_to_matrix) -> Any:
     """Rotation matrix of a rotation vector ``axis * angle``: shape ``(..., 3)`` to ``(..., 3, 3)``.
 
     Through the unit quaternion (Rodrigues' formula in half angles), so it is exact and smooth at the
     zero vector, gradient included, and accurate at every angle."""
     # The quaternion (behind cos and sin) is computed once, not again in each of the nine entries.
-    return quaternion_to_matrix(xp, computed_once(xp, axis_angle_to_quaternion(xp, axis_angle)))
+    return to_matrix(xp, computed_once(xp, axis_angle_to_quaternion(xp, axis_angle)))
 
 
 @op(matrix=(3, 3))
-def matrix_to_axis_angle(xp: Any, matrix: Any) -> Any:
+def matrix_to_axis_angle(xp: Any, matrix: Any, *, to_quaternion: Conversion = matrix_to_quaternion) -> Any:
     """Rotation vector ``axis * angle`` of a rotation matrix, angle in [0, pi]: ``(..., 3, 3)`` to
     ``(..., 3)``.
 
@@ -250,7 +251,7 @@ def matrix_to_axis_angle(xp: Any, matrix: Any) -> Any:
     ``quaternion_to_axis_angle``: accurate near 0 and pi, where ``acos((trace - 1) / 2)`` loses half the
     digits. At exactly pi the vector's sign is that of the canonical quaternion (discontinuous there,
     as every rotation vector must be; the gradient stays finite)."""
-    return quaternion_to_axis_angle(xp, matrix_to_quaternion(xp, matrix))
+    return quaternion_to_axis_angle(xp, to_quaternion(xp, matrix))
 
 
 # ---------------------------------------------------------------------------------------------------

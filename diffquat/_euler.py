@@ -18,6 +18,7 @@ from typing import Any
 
 from ._algebra import hamilton, nonzero_or_identity, safe_norm
 from ._core import (
+    Conversion,
     computed_once,
     join_quaternion,
     matrix_to_quaternion,
@@ -81,7 +82,14 @@ def euler_angles_to_quaternion(
 
 
 @op(angles=(3,))
-def euler_angles_to_matrix(xp: Any, angles: Any, convention: str, *, degrees: bool = False) -> Any:
+def euler_angles_to_matrix(
+    xp: Any,
+    angles: Any,
+    convention: str,
+    *,
+    degrees: bool = False,
+    to_matrix: Conversion = quaternion_to_matrix,
+) -> Any:
     """Rotation matrix of Euler angles: shape ``(..., 3)`` to ``(..., 3, 3)``.
 
     ``convention`` and ``degrees`` as in ``euler_angles_to_quaternion`` (scipy's rule: upper case
@@ -89,7 +97,7 @@ def euler_angles_to_matrix(xp: Any, angles: Any, convention: str, *, degrees: bo
     parse_convention("euler_angles_to_matrix", convention)
     # The quaternion (behind cos and sin) is computed once, not again in each of the nine entries.
     q = computed_once(xp, euler_angles_to_quaternion(xp, angles, convention, degrees=degrees))
-    return quaternion_to_matrix(xp, q)
+    return to_matrix(xp, q)
 
 
 def _quaternion_to_euler(
@@ -161,11 +169,18 @@ def quaternion_to_euler_angles(
 
 
 @op(matrix=(3, 3))
-def matrix_to_euler_angles(xp: Any, matrix: Any, convention: str, *, degrees: bool = False) -> Any:
+def matrix_to_euler_angles(
+    xp: Any,
+    matrix: Any,
+    convention: str,
+    *,
+    degrees: bool = False,
+    to_quaternion: Conversion = matrix_to_quaternion,
+) -> Any:
     """Euler angles of a rotation matrix: shape ``(..., 3, 3)`` to ``(..., 3)``.
 
     Through ``matrix_to_quaternion``, then exactly as ``quaternion_to_euler_angles`` (scipy's rule, all
     12 axis sequences; third angle 0 at a gimbal lock, no warning, finite gradients)."""
     parse_convention("matrix_to_euler_angles", convention)
-    q = matrix_to_quaternion(xp, matrix)
+    q = to_quaternion(xp, matrix)
     return _quaternion_to_euler(xp, "matrix_to_euler_angles", q, convention, degrees, True)

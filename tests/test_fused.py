@@ -16,7 +16,7 @@ import torch
 from cases import AT_HALF_TURNS, CASES_BY_NAME, EDGE_CASES, oracle_quaternion_to_matrix, outer
 
 import diffquat.torch as dq
-from diffquat import _core
+from diffquat import _algebra, _core, _euler
 from diffquat.torch import _fused
 
 PAIRS = [
@@ -190,6 +190,73 @@ def test_batch_size_dispatch() -> None:
     assert type(dq.matrix_to_quaternion(matrices[:limit]).grad_fn).__name__ == "MatrixToQuaternionBackward"
     large_fn = type(dq.matrix_to_quaternion(matrices).grad_fn).__name__
     assert large_fn == "MatrixToQuaternionColumnsBackward"
+
+
+def _rotation_vectors(n: int) -> torch.Tensor:
+    """Float64 rotation vectors with the named edge cases first: zero, a half-turn, and angles just
+    below and past pi."""
+    special = [[0.0, 0.0, 0.0], [np.pi, 0.0, 0.0], [0.0, 0.0, np.pi - 1e-9], [0.0, 3.2, 0.0]]
+    rest = torch.randn(n - len(special), 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    return torch.cat([torch.tensor(special, dtype=torch.float64), rest])
+
+
+def _function_nodes(out: torch.Tensor) -> set[str]:
+    """The names of every node of ``out``'s autograd graph."""
+    names, stack, seen = set(), [out.grad_fn], set()
+    while stack:
+        node = stack.pop()
+        if node is None or node in seen:
+            continue
+        seen.add(node)
+        names.add(type(node).__name__)
+        stack += [child for child, _ in node.next_functions]
+    return names
+
+
+COMPOSITES = [
+    (dq.axis_angle_to_matrix, _algebra.axis_angle_to_matrix, "QuaternionToMatrix", "quaternion_to_matrix"),
+    (dq.matrix_to_axis_angle, _algebra.matrix_to_axis_angle, "MatrixToQuaternion", "matrix_to_quaternion"),
+    (
+        lambda a: dq.euler_angles_to_matrix(a, "ZXZ"),
+        lambda xp, a: _euler.euler_angles_to_matrix(xp, a, "ZXZ"),
+        "QuaternionToMatrix",
+        "quaternion_to_matrix",
+    ),
+    (
+        lambda m: dq.matrix_to_euler_angles(m, "xyz"),
+        lambda xp, m: _euler.matrix_to_euler_angles(xp, m, "xyz"),
+        "MatrixToQuaternion",
+        "matrix_to_quaternion",
+    ),
+]
+
+
+@pytest.mark.parametrize("size", ["small", "large"])
+@pytest.mark.parametrize(
+    ("public", "composite", "function", "conversion"),
+    COMPOSITES,
+    ids=["axis_angle_to_matrix", "matrix_to_axis_angle", "euler_angles_to_matrix", "matrix_to_euler_angles"],
+)
+def test_composites_take_the_fused_conversion(
+    public: object, composite: object, function: str, conversion: str, size: str
+) -> None:
+    """Axis-angle and Euler conversions to and from matrices go through the same fast path as the
+    quaternion conversion inside them (small-batch or columns Function, by batch size), and give the
+    core composite's values and gradients, edge cases included."""
+    n = 16 if size == "small" else _fused.MAX_FUSED_BATCH[conversion] + 1
+    x = _rotation_vectors(n)
+    if conversion == "matrix_to_quaternion":
+        x = _algebra.axis_angle_to_matrix(torch, x)
+    x.requires_grad_(True)
+    ours = public(x)  # type: ignore[operator]
+    expected = function if size == "small" else function + "Columns"
+    assert expected + "Backward" in _function_nodes(ours)
+    core = composite(torch, x)  # type: ignore[operator]
+    torch.testing.assert_close(ours, core, rtol=1e-12, atol=1e-12)
+    weights = torch.randn(ours.shape, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
+    (g_ours,) = torch.autograd.grad(ours, x, weights)
+    (g_core,) = torch.autograd.grad(core, x, weights)
+    torch.testing.assert_close(g_ours, g_core, rtol=1e-9, atol=1e-9)
 
 
 def test_batch_size_dispatch_without_gradient() -> None:

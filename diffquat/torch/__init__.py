@@ -72,6 +72,17 @@ def matrix_to_quaternion(matrix: Tensor, *, scalar_first: bool = True) -> Tensor
     return _B(_fused.m2q_path(matrix), matrix, scalar_first=scalar_first)
 
 
+def _quaternion_to_matrix(xp: Any, q: Tensor, *, scalar_first: bool = True) -> Tensor:
+    """The conversion step of the composites (see ``_core.Conversion``), by the same path as
+    :func:`quaternion_to_matrix` for this call."""
+    return _fused.q2m_path(q)(xp, q, scalar_first=scalar_first)
+
+
+def _matrix_to_quaternion(xp: Any, matrix: Tensor, *, scalar_first: bool = True) -> Tensor:
+    """The conversion step of the composites, by the same path as :func:`matrix_to_quaternion`."""
+    return _fused.m2q_path(matrix)(xp, matrix, scalar_first=scalar_first)
+
+
 @documented(_core.standardize_quaternion)
 def standardize_quaternion(q: Tensor, *, scalar_first: bool = True) -> Tensor:
     return _B(_core.standardize_quaternion, q, scalar_first=scalar_first)
@@ -143,22 +154,34 @@ def quaternion_to_axis_angle(q: Tensor, *, scalar_first: bool = True) -> Tensor:
 
 @documented(_algebra.axis_angle_to_matrix)
 def axis_angle_to_matrix(axis_angle: Tensor) -> Tensor:
-    return _B(_algebra.axis_angle_to_matrix, axis_angle)
+    return _B(_algebra.axis_angle_to_matrix, axis_angle, to_matrix=_quaternion_to_matrix)
 
 
 @documented(_algebra.matrix_to_axis_angle)
 def matrix_to_axis_angle(matrix: Tensor) -> Tensor:
-    return _B(_algebra.matrix_to_axis_angle, matrix)
+    return _B(_algebra.matrix_to_axis_angle, matrix, to_quaternion=_matrix_to_quaternion)
 
 
 @documented(_euler.euler_angles_to_matrix)
 def euler_angles_to_matrix(angles: Tensor, convention: str, *, degrees: bool = False) -> Tensor:
-    return _B(_euler.euler_angles_to_matrix, angles, convention=convention, degrees=degrees)
+    return _B(
+        _euler.euler_angles_to_matrix,
+        angles,
+        convention=convention,
+        degrees=degrees,
+        to_matrix=_quaternion_to_matrix,
+    )
 
 
 @documented(_euler.matrix_to_euler_angles)
 def matrix_to_euler_angles(matrix: Tensor, convention: str, *, degrees: bool = False) -> Tensor:
-    return _B(_euler.matrix_to_euler_angles, matrix, convention=convention, degrees=degrees)
+    return _B(
+        _euler.matrix_to_euler_angles,
+        matrix,
+        convention=convention,
+        degrees=degrees,
+        to_quaternion=_matrix_to_quaternion,
+    )
 
 
 @documented(_euler.euler_angles_to_quaternion)
