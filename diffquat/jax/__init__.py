@@ -173,6 +173,9 @@ def axis_angle_to_matrix(axis_angle: ArrayLike) -> Array:
     return _B(_algebra.axis_angle_to_matrix, axis_angle)
 
 
+# The composites keep the core's matrix_to_quaternion step here (see _core.Conversion): the custom
+# derivative above, inside matrix_to_axis_angle or matrix_to_euler_angles, measured 1.5-2x slower
+# forward and forward + backward at N = 262144 (XLA fuses the plain formula into what follows).
 @documented(_algebra.matrix_to_axis_angle)
 def matrix_to_axis_angle(matrix: ArrayLike) -> Array:
     return _B(_algebra.matrix_to_axis_angle, matrix)
