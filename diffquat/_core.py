@@ -22,9 +22,9 @@ F = TypeVar("F", bound=Callable[..., Any])
 
 # The conversion step inside a composite (axis-angle or Euler angles to matrix through the quaternion,
 # and back), as ``conversion(xp, x)``: the core formula by default. A backend passes its own evaluation
-# of the same map where it has a faster one (torch: the fused Functions of ``diffquat.torch._fused``;
-# jax: the custom derivative of ``matrix_to_quaternion``), so that composites are as fast as the
-# conversion itself. Not part of the public signatures: the backend wrappers do not take it.
+# of the same map where it pays (torch: the fused Functions of ``diffquat.torch._fused``, chosen per
+# call as for its public conversions), so that composites are as fast as the conversion itself. Not
+# part of the public signatures: the backend wrappers do not take it.
 Conversion = Callable[..., Any]
 
 # Trailing shape of every array argument of every public core function, by argument name. The backend
