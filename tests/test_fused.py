@@ -1,4 +1,7 @@
-"""The torch fast paths (diffquat/torch/_fused.py) against the core formula they replace.
+"""The torch fast paths (diffquat/torch/_fused.py, and the C kernels' Functions of _cpu.py) against the
+core formula they replace. The eager CPU default is the kernels (tests/test_kernels.py checks what is
+particular to them); the pure-torch Functions are the fallback where the extension is not built, and
+the ``setup_context`` ones run under ``torch.func``.
 
 The shared matrix already runs every case through the public functions, which take the small-batch
 Functions for small eager batches (the old-style Function eagerly, the ``setup_context`` one under
@@ -17,21 +20,29 @@ from cases import AT_HALF_TURNS, CASES_BY_NAME, EDGE_CASES, oracle_quaternion_to
 
 import diffquat.torch as dq
 from diffquat import _algebra, _core, _euler
-from diffquat.torch import _fused
+from diffquat.torch import _cpu, _fused
 
 PAIRS = [
+    (_cpu.quaternion_to_matrix, _core.quaternion_to_matrix, lambda q: q),
+    (_cpu.matrix_to_quaternion, _core.matrix_to_quaternion, oracle_quaternion_to_matrix),
     (_fused.quaternion_to_matrix, _core.quaternion_to_matrix, lambda q: q),
     (_fused.matrix_to_quaternion, _core.matrix_to_quaternion, oracle_quaternion_to_matrix),
     (_fused.matrix_to_quaternion_columns, _core.matrix_to_quaternion, oracle_quaternion_to_matrix),
     (_fused.quaternion_to_matrix_columns, _core.quaternion_to_matrix, lambda q: q),
 ]
 PAIR_IDS = [
+    "quaternion_to_matrix_kernel",
+    "matrix_to_quaternion_kernel",
     "quaternion_to_matrix",
     "matrix_to_quaternion",
     "matrix_to_quaternion_columns",
     "quaternion_to_matrix_columns",
 ]
-QUATERNION_INPUT = (_fused.quaternion_to_matrix, _fused.quaternion_to_matrix_columns)
+QUATERNION_INPUT = (
+    _cpu.quaternion_to_matrix,
+    _fused.quaternion_to_matrix,
+    _fused.quaternion_to_matrix_columns,
+)
 
 
 def _off_so3(n: int) -> torch.Tensor:
@@ -67,6 +78,8 @@ def test_fused_forward_mode(scalar_first: bool) -> None:
     q = torch.tensor(CASES_BY_NAME["random"].quaternions("float64")[:6], requires_grad=True)
     m = _off_so3(6).requires_grad_(True)
     for fn, x in (
+        (_cpu.quaternion_to_matrix, q),
+        (_cpu.matrix_to_quaternion, m),
         (_fused.quaternion_to_matrix, q),
         (_fused.quaternion_to_matrix_columns, q),
         (_fused.matrix_to_quaternion, m),
@@ -178,8 +191,16 @@ def test_evaluation_by_blocks(monkeypatch: pytest.MonkeyPatch, scalar_first: boo
     torch.testing.assert_close(blocks, _core.quaternion_to_matrix(torch, q), rtol=0, atol=1e-15)
 
 
+@pytest.fixture
+def without_kernels(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The dispatch as where the C extension is not built (no C compiler at install)."""
+    monkeypatch.setattr(_fused, "_cpu", None)
+
+
+@pytest.mark.usefixtures("without_kernels")
 def test_batch_size_dispatch() -> None:
-    """Small eager batches take the small-batch Functions, large ones the columns Functions."""
+    """Without the kernels, small eager batches take the small-batch Functions, large ones the
+    columns Functions."""
     limit = _fused.MAX_FUSED_BATCH["quaternion_to_matrix"]
     small = torch.randn(limit, 4, requires_grad=True)
     large = torch.randn(limit + 1, 4, requires_grad=True)
@@ -231,25 +252,33 @@ COMPOSITES = [
 ]
 
 
-@pytest.mark.parametrize("size", ["small", "large"])
+@pytest.mark.parametrize("size", ["kernel", "small", "large"])
 @pytest.mark.parametrize(
     ("public", "composite", "function", "conversion"),
     COMPOSITES,
     ids=["axis_angle_to_matrix", "matrix_to_axis_angle", "euler_angles_to_matrix", "matrix_to_euler_angles"],
 )
 def test_composites_take_the_fused_conversion(
-    public: object, composite: object, function: str, conversion: str, size: str
+    public: object,
+    composite: object,
+    function: str,
+    conversion: str,
+    size: str,
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """Axis-angle and Euler conversions to and from matrices go through the same fast path as the
-    quaternion conversion inside them (small-batch or columns Function, by batch size), and give the
-    core composite's values and gradients, edge cases included."""
-    n = 16 if size == "small" else _fused.MAX_FUSED_BATCH[conversion] + 1
+    quaternion conversion inside them (the kernels' Function; without them the small-batch or columns
+    Function, by batch size), and give the core composite's values and gradients, edge cases
+    included."""
+    if size != "kernel":
+        monkeypatch.setattr(_fused, "_cpu", None)
+    n = _fused.MAX_FUSED_BATCH[conversion] + 1 if size == "large" else 16
     x = _rotation_vectors(n)
     if conversion == "matrix_to_quaternion":
         x = _algebra.axis_angle_to_matrix(torch, x)
     x.requires_grad_(True)
     ours = public(x)  # type: ignore[operator]
-    expected = function if size == "small" else function + "Columns"
+    expected = function + {"kernel": "Kernel", "small": "", "large": "Columns"}[size]
     assert expected + "Backward" in _function_nodes(ours)
     core = composite(torch, x)  # type: ignore[operator]
     torch.testing.assert_close(ours, core, rtol=1e-12, atol=1e-12)
@@ -259,10 +288,11 @@ def test_composites_take_the_fused_conversion(
     torch.testing.assert_close(g_ours, g_core, rtol=1e-9, atol=1e-9)
 
 
+@pytest.mark.usefixtures("without_kernels")
 def test_batch_size_dispatch_without_gradient() -> None:
-    """quaternion_to_matrix takes the core formula (by blocks) from a smaller batch on where no
-    gradient is recorded (the Function's products cost more memory than its saved backward is worth
-    there), and gives the same values either way."""
+    """Without the kernels, quaternion_to_matrix takes the core formula (by blocks) from a smaller
+    batch on where no gradient is recorded (the Function's products cost more memory than its saved
+    backward is worth there), and gives the same values either way."""
     limit = _fused.MAX_FUSED_BATCH_NO_GRAD["quaternion_to_matrix"]
     assert limit < _fused.MAX_FUSED_BATCH["quaternion_to_matrix"]
     small, large = torch.randn(limit, 4), torch.randn(limit + 1, 4)

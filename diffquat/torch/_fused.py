@@ -31,6 +31,15 @@ from torch import Tensor
 
 from .. import _core, _fused
 
+# The C kernels, where the extension was built (pyproject.toml builds it wherever a C compiler is).
+_cpu: Any
+try:
+    from . import _kernels  # noqa: F401
+except ImportError:
+    _cpu = None
+else:
+    from . import _cpu
+
 
 def _padded(rows: list[list[float]], width: int = 16) -> list[list[float]]:
     return [row + [0.0] * (width - len(row)) for row in rows]
@@ -140,7 +149,7 @@ def q2m_backward(q: Tensor, grad: Tensor, s: Tensor | None = None) -> Tensor:
     return s * torch.addcmul(hq, s * torch.sum(q * hq, dim=-1, keepdim=True), q, value=-1.0)
 
 
-def _q2m_jvp(q: Tensor, tangent: Tensor) -> Tensor:
+def q2m_jvp(q: Tensor, tangent: Tensor) -> Tensor:
     """``dR`` for ``dq``: ``s (u q^T + q u^T) . F`` with ``u = dq - s (q . dq) q`` (the radial part of
     ``dq``, along ``q``, leaves ``R`` unchanged)."""
     s = _inverse_square_norm(torch.sum(q * q, dim=-1, keepdim=True))
@@ -149,7 +158,7 @@ def _q2m_jvp(q: Tensor, tangent: Tensor) -> Tensor:
     return _split(s * d_forms, 3, 3)
 
 
-def _select(matrix: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def select(matrix: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """The candidate of the largest pivot, its signed inverse norm, and the pivot (..., 1).
 
     ``argmax`` returns the first maximum, so ties go to the lower index, as in the core. The canonical
@@ -164,7 +173,7 @@ def _select(matrix: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     return c, torch.copysign(norm, leading[..., None]), pivot
 
 
-def _m2q_backward(matrix: Tensor, grad: Tensor, c: Tensor, inv: Tensor, pivot: Tensor) -> Tensor:
+def m2q_backward(matrix: Tensor, grad: Tensor, c: Tensor, inv: Tensor, pivot: Tensor) -> Tensor:
     """``dL/dmatrix`` from ``dL/dq``: only the selected row of ``K`` receives the cotangent, and
     ``K``'s forms send it back to the matrix entries."""
     grad_c = _fused.normalize_vjp(torch, c * inv, inv, grad)
@@ -173,8 +182,8 @@ def _m2q_backward(matrix: Tensor, grad: Tensor, c: Tensor, inv: Tensor, pivot: T
     return _split(_contract(grad_k, "m2q_forms_t"), 3, 3)
 
 
-def _m2q_jvp(matrix: Tensor, tangent: Tensor) -> Tensor:
-    c, inv, pivot = _select(matrix)
+def m2q_jvp(matrix: Tensor, tangent: Tensor) -> Tensor:
+    c, inv, pivot = select(matrix)
     tangent_k = _split(_contract(torch.flatten(tangent, -2), "m2q_forms"), 4, 4)
     tangent_c = torch.gather(tangent_k, -2, pivot[..., None].expand(*pivot.shape, 4))[..., 0, :]
     return _fused.normalize_vjp(torch, c * inv, inv, tangent_c)
@@ -204,7 +213,7 @@ class QuaternionToMatrix(torch.autograd.Function):
     @staticmethod
     def jvp(ctx: Any, tangent: Tensor) -> Tensor:
         (q,) = ctx.saved_tensors
-        return _q2m_jvp(q, tangent)
+        return q2m_jvp(q, tangent)
 
 
 class _SavesInput(torch.autograd.Function):
@@ -231,13 +240,13 @@ class QuaternionToMatrixTransformable(_SavesInput):
     @staticmethod
     def jvp(ctx: Any, tangent: Tensor) -> Tensor:
         (q,) = ctx.saved_tensors
-        return _q2m_jvp(q, tangent)
+        return q2m_jvp(q, tangent)
 
 
 class MatrixToQuaternion(torch.autograd.Function):
     @staticmethod
     def forward(ctx: Any, matrix: Tensor) -> Tensor:
-        c, inv, pivot = _select(matrix)
+        c, inv, pivot = select(matrix)
         ctx.save_for_backward(matrix, c, inv, pivot)
         ctx.save_for_forward(matrix)
         return c * inv
@@ -246,30 +255,30 @@ class MatrixToQuaternion(torch.autograd.Function):
     def backward(ctx: Any, grad: Tensor) -> Tensor:
         matrix, c, inv, pivot = ctx.saved_tensors
         if torch.is_grad_enabled():  # double backward: c and inv as functions of the matrix
-            c, inv, pivot = _select(matrix)
-        return _m2q_backward(matrix, grad, c, inv, pivot)
+            c, inv, pivot = select(matrix)
+        return m2q_backward(matrix, grad, c, inv, pivot)
 
     @staticmethod
     def jvp(ctx: Any, tangent: Tensor) -> Tensor:
         (matrix,) = ctx.saved_tensors
-        return _m2q_jvp(matrix, tangent)
+        return m2q_jvp(matrix, tangent)
 
 
 class MatrixToQuaternionTransformable(_SavesInput):
     @staticmethod
     def forward(matrix: Tensor) -> Tensor:
-        c, inv, _ = _select(matrix)
+        c, inv, _ = select(matrix)
         return c * inv
 
     @staticmethod
     def backward(ctx: Any, grad: Tensor) -> Tensor:
         (matrix,) = ctx.saved_tensors
-        return _m2q_backward(matrix, grad, *_select(matrix))
+        return m2q_backward(matrix, grad, *select(matrix))
 
     @staticmethod
     def jvp(ctx: Any, tangent: Tensor) -> Tensor:
         (matrix,) = ctx.saved_tensors
-        return _m2q_jvp(matrix, tangent)
+        return m2q_jvp(matrix, tangent)
 
 
 class _EagerTorch:
@@ -382,7 +391,7 @@ class QuaternionToMatrixColumns(torch.autograd.Function):
     @staticmethod
     def jvp(ctx: Any, tangent: Tensor) -> Tensor:
         (q,) = ctx.saved_tensors
-        return _q2m_jvp(q, tangent)
+        return q2m_jvp(q, tangent)
 
 
 class MatrixToQuaternionColumns(torch.autograd.Function):
@@ -493,15 +502,19 @@ def _triton_usable(x: Tensor) -> bool:
 
 def q2m_path(q: Any) -> Callable[..., Tensor]:
     """The implementation of ``quaternion_to_matrix`` for this call: the core formula under
-    ``torch.compile`` (inductor fuses it with the user's code); the Triton kernels on CUDA; for eager
-    batches, the fused Function for small ones, the columns Function for large ones, and where no
-    gradient is recorded, the core formula by blocks from a smaller batch size on."""
+    ``torch.compile`` (inductor fuses it with the user's code); the Triton kernels on CUDA; the C
+    kernels of :mod:`._cpu` on the CPU. Without those (no C compiler at install, a ``torch.func``
+    transform, another device): for eager batches, the fused Function for small ones, the columns
+    Function for large ones, and where no gradient is recorded, the core formula by blocks from a
+    smaller batch size on."""
     if not isinstance(q, Tensor) or torch.compiler.is_compiling():
         return _core.quaternion_to_matrix
     if _triton_usable(q):
         from . import _triton
 
         return _triton.quaternion_to_matrix
+    if _cpu is not None and _cpu.usable(q):
+        return _cpu.quaternion_to_matrix
     if _builds_gradient(q):
         small = q.numel() <= 4 * MAX_FUSED_BATCH["quaternion_to_matrix"]
         return quaternion_to_matrix if small else quaternion_to_matrix_columns
@@ -516,13 +529,15 @@ def _builds_gradient(x: Tensor) -> bool:
 
 def m2q_path(matrix: Any) -> Callable[..., Tensor]:
     """The implementation of ``matrix_to_quaternion`` for this call: the core formula under
-    ``torch.compile``; the Triton kernels on CUDA; the small-batch Function for small eager batches,
-    the columns Function for large ones."""
+    ``torch.compile``; the Triton kernels on CUDA; the C kernels on the CPU; otherwise the small-batch
+    Function for small eager batches, the columns Function for large ones."""
     if not isinstance(matrix, Tensor) or torch.compiler.is_compiling():
         return _core.matrix_to_quaternion
     if _triton_usable(matrix):
         from . import _triton
 
         return _triton.matrix_to_quaternion
+    if _cpu is not None and _cpu.usable(matrix):
+        return _cpu.matrix_to_quaternion
     small = matrix.numel() <= 9 * MAX_FUSED_BATCH["matrix_to_quaternion"]
     return matrix_to_quaternion if small else matrix_to_quaternion_columns

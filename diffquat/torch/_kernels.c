@@ -1,0 +1,478 @@
+/* diffquat.torch._kernels: quaternion_to_matrix and matrix_to_quaternion on the CPU, forward and
+ * backward, each one pass over memory.
+ *
+ * The CPU counterpart of diffquat/torch/_triton.py. Eager torch evaluates the core formulas as ~40
+ * elementwise operations forward and as many backward, each a full pass over memory and a few
+ * microseconds of dispatch; here each direction is one loop over the rotations that reads the inputs
+ * once and writes the output once, with no temporaries.
+ *
+ * The arithmetic is the core's (diffquat/_core.py), operation by operation and in the same order,
+ * so that float32 and float64 results agree with the core formula to rounding (the tests compare
+ * them at every edge case):
+ *   - quaternion_to_matrix: normalise (1 / sqrt of the squared norm, 0 for a squared norm below the
+ *     smallest normal number: the zero quaternion gives the identity), then the unit formula;
+ *   - its backward: _core.quaternion_to_matrix_cotangent;
+ *   - matrix_to_quaternion: the four pivots from the diagonal, the candidate of the largest (ties to
+ *     the lower index, as _core._m2q_choice), its normalisation and the canonical sign;
+ *   - its backward: _core.matrix_to_quaternion_cotangent, the scale read back from the result.
+ *
+ * No Python objects are touched inside the loops, so they run without the GIL. It does not depend
+ * on torch: the Python side (diffquat/torch/_fused.py) passes data pointers and strides in elements,
+ * so strided inputs (an expanded cotangent, scalar-last storage, a transposed matrix) are read in
+ * place instead of copied. Outputs are contiguous. Large batches are split over threads.
+ */
+
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+
+#include <float.h>
+#include <math.h>
+#include <pthread.h>
+#include <stdint.h>
+
+/* Everything a kernel needs, as the Python side passed it. Strides are in elements. */
+typedef struct {
+    const void *a;     /* q (quaternion_to_matrix*) or the matrix (matrix_to_quaternion*) */
+    const void *b;     /* dL/dR (q2m backward) or the result q (m2q backward) */
+    const void *c;     /* dL/dq (m2q backward) */
+    void *out;         /* contiguous output */
+    int64_t sa[3];     /* strides of a: row, then (component) or (matrix row, matrix column) */
+    int64_t sb[3];
+    int64_t sc[3];
+    int first;         /* storage order of every quaternion read or written: 1 = (w, x, y, z) */
+} Args;
+
+typedef void (*Kernel)(const Args *, int64_t, int64_t);
+
+/* Each kernel works by blocks of BLOCK rows: the inputs are gathered into one array per component
+ * (in storage order), the arithmetic runs over those arrays (branch-free: the pivot choice and the
+ * sign rule are selects and bitwise masks, so the compiler vectorises it), and the results are
+ * scattered into the contiguous output. Strided inputs are read in place by a generic gather;
+ * contiguous rows, the common case, by fixed offsets, and for float32 on x86-64 four rows at a time
+ * through SSE transposes, which compilers do not find by themselves for rows of 9. On x86-64 each
+ * kernel is also compiled for AVX2, and the loader picks the build that the processor runs
+ * (target_clones); FMA stays off, so every build rounds as the core does. */
+#define BLOCK 128
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#define CLONES __attribute__((target_clones("default", "avx2")))
+#else
+#define CLONES
+#endif
+
+/* Index in storage order of component k (0: w, 1: x, 2: y, 3: z). */
+static inline int component(int first, int k) { return first ? k : (k + 3) % 4; }
+
+/* Moves of one block of `cnt` rows, v[e][j] = entry e of row j: strided gathers (strides in
+ * elements), and gathers and scatters of contiguous rows of 4 or 9. */
+#define DEFINE_STRIDED(T, SUFFIX)                                                                   \
+    static inline void gather4_strided_##SUFFIX(T v[4][BLOCK], const T *src, int64_t rs,            \
+                                                int64_t cs, int cnt) {                              \
+        for (int j = 0; j < cnt; ++j) {                                                             \
+            for (int e = 0; e < 4; ++e) v[e][j] = src[j * rs + e * cs];                             \
+        }                                                                                           \
+    }                                                                                               \
+    static inline void gather9_strided_##SUFFIX(T v[9][BLOCK], const T *src, int64_t rs,            \
+                                                int64_t is, int64_t js, int cnt) {                  \
+        for (int j = 0; j < cnt; ++j) {                                                             \
+            for (int e = 0; e < 9; ++e) v[e][j] = src[j * rs + (e / 3) * is + (e % 3) * js];        \
+        }                                                                                           \
+    }
+
+/* Contiguous rows of W entries, one row at a time from `from` on (the whole block, or what is left
+ * after the vectorised part). */
+#define DEFINE_ROWS(T, SUFFIX, W)                                                                   \
+    static inline void gather##W##_tail_##SUFFIX(T v[W][BLOCK], const T *src, int from, int cnt) {  \
+        for (int j = from; j < cnt; ++j) {                                                          \
+            for (int e = 0; e < W; ++e) v[e][j] = src[W * j + e];                                   \
+        }                                                                                           \
+    }                                                                                               \
+    static inline void scatter##W##_tail_##SUFFIX(T *dst, T v[W][BLOCK], int from, int cnt) {       \
+        for (int j = from; j < cnt; ++j) {                                                          \
+            for (int e = 0; e < W; ++e) dst[W * j + e] = v[e][j];                                   \
+        }                                                                                           \
+    }
+
+DEFINE_STRIDED(float, f32)
+DEFINE_STRIDED(double, f64)
+DEFINE_ROWS(float, f32, 4)
+DEFINE_ROWS(float, f32, 9)
+DEFINE_ROWS(double, f64, 4)
+DEFINE_ROWS(double, f64, 9)
+
+#if defined(__SSE2__)
+#include <immintrin.h>
+/* float32: four rows at a time, a 4 x 4 transpose per four entries (a row of 9 is two vectors and
+ * one scalar). Returns the number of rows done. */
+static inline void store_columns(float v[][BLOCK], int e, int j, __m128 a0, __m128 a1, __m128 a2,
+                                 __m128 a3) {
+    _MM_TRANSPOSE4_PS(a0, a1, a2, a3);
+    _mm_storeu_ps(&v[e][j], a0), _mm_storeu_ps(&v[e + 1][j], a1);
+    _mm_storeu_ps(&v[e + 2][j], a2), _mm_storeu_ps(&v[e + 3][j], a3);
+}
+static inline int gather4_fast_f32(float v[4][BLOCK], const float *src, int cnt) {
+    int j = 0;
+    for (; j + 4 <= cnt; j += 4) {
+        const float *s = src + 4 * j;
+        store_columns(v, 0, j, _mm_loadu_ps(s), _mm_loadu_ps(s + 4), _mm_loadu_ps(s + 8),
+                      _mm_loadu_ps(s + 12));
+    }
+    return j;
+}
+static inline int gather9_fast_f32(float v[9][BLOCK], const float *src, int cnt) {
+    int j = 0;
+    for (; j + 4 <= cnt; j += 4) {
+        const float *s = src + 9 * j;
+        store_columns(v, 0, j, _mm_loadu_ps(s), _mm_loadu_ps(s + 9), _mm_loadu_ps(s + 18),
+                      _mm_loadu_ps(s + 27));
+        store_columns(v, 4, j, _mm_loadu_ps(s + 4), _mm_loadu_ps(s + 13), _mm_loadu_ps(s + 22),
+                      _mm_loadu_ps(s + 31));
+        v[8][j] = s[8], v[8][j + 1] = s[17], v[8][j + 2] = s[26], v[8][j + 3] = s[35];
+    }
+    return j;
+}
+static inline int scatter4_fast_f32(float *dst, float v[4][BLOCK], int cnt) {
+    int j = 0;
+    for (; j + 4 <= cnt; j += 4) {
+        __m128 a0 = _mm_loadu_ps(&v[0][j]), a1 = _mm_loadu_ps(&v[1][j]);
+        __m128 a2 = _mm_loadu_ps(&v[2][j]), a3 = _mm_loadu_ps(&v[3][j]);
+        _MM_TRANSPOSE4_PS(a0, a1, a2, a3);
+        float *o = dst + 4 * j;
+        _mm_storeu_ps(o, a0), _mm_storeu_ps(o + 4, a1), _mm_storeu_ps(o + 8, a2);
+        _mm_storeu_ps(o + 12, a3);
+    }
+    return j;
+}
+static inline int scatter9_fast_f32(float *dst, float v[9][BLOCK], int cnt) {
+    int j = 0;
+    for (; j + 4 <= cnt; j += 4) {
+        __m128 a0 = _mm_loadu_ps(&v[0][j]), a1 = _mm_loadu_ps(&v[1][j]);
+        __m128 a2 = _mm_loadu_ps(&v[2][j]), a3 = _mm_loadu_ps(&v[3][j]);
+        __m128 b0 = _mm_loadu_ps(&v[4][j]), b1 = _mm_loadu_ps(&v[5][j]);
+        __m128 b2 = _mm_loadu_ps(&v[6][j]), b3 = _mm_loadu_ps(&v[7][j]);
+        _MM_TRANSPOSE4_PS(a0, a1, a2, a3);
+        _MM_TRANSPOSE4_PS(b0, b1, b2, b3);
+        float *o = dst + 9 * j;
+        _mm_storeu_ps(o, a0), _mm_storeu_ps(o + 4, b0), o[8] = v[8][j];
+        _mm_storeu_ps(o + 9, a1), _mm_storeu_ps(o + 13, b1), o[17] = v[8][j + 1];
+        _mm_storeu_ps(o + 18, a2), _mm_storeu_ps(o + 22, b2), o[26] = v[8][j + 2];
+        _mm_storeu_ps(o + 27, a3), _mm_storeu_ps(o + 31, b3), o[35] = v[8][j + 3];
+    }
+    return j;
+}
+#else
+static inline int gather4_fast_f32(float v[4][BLOCK], const float *src, int cnt) { return 0; }
+static inline int gather9_fast_f32(float v[9][BLOCK], const float *src, int cnt) { return 0; }
+static inline int scatter4_fast_f32(float *dst, float v[4][BLOCK], int cnt) { return 0; }
+static inline int scatter9_fast_f32(float *dst, float v[9][BLOCK], int cnt) { return 0; }
+#endif
+/* float64 rows go one at a time (the compiler vectorises the fixed offsets where it can). */
+static inline int gather4_fast_f64(double v[4][BLOCK], const double *src, int cnt) { return 0; }
+static inline int gather9_fast_f64(double v[9][BLOCK], const double *src, int cnt) { return 0; }
+static inline int scatter4_fast_f64(double *dst, double v[4][BLOCK], int cnt) { return 0; }
+static inline int scatter9_fast_f64(double *dst, double v[9][BLOCK], int cnt) { return 0; }
+
+/* A block of quaternions (strides s: row, component) or of matrices (row, matrix row, matrix
+ * column) from row `base` on, gathered in storage order; a block of contiguous output rows. */
+#define DEFINE_MOVES(T, SUFFIX)                                                                     \
+    static inline void gather4_##SUFFIX(T v[4][BLOCK], const T *src, const int64_t *s,              \
+                                        int64_t base, int cnt) {                                    \
+        if (s[0] == 4 && s[1] == 1) {                                                               \
+            const T *rows = src + 4 * base;                                                         \
+            gather4_tail_##SUFFIX(v, rows, gather4_fast_##SUFFIX(v, rows, cnt), cnt);               \
+        } else {                                                                                    \
+            gather4_strided_##SUFFIX(v, src + base * s[0], s[0], s[1], cnt);                        \
+        }                                                                                           \
+    }                                                                                               \
+    static inline void gather9_##SUFFIX(T v[9][BLOCK], const T *src, const int64_t *s,              \
+                                        int64_t base, int cnt) {                                    \
+        if (s[0] == 9 && s[1] == 3 && s[2] == 1) {                                                  \
+            const T *rows = src + 9 * base;                                                         \
+            gather9_tail_##SUFFIX(v, rows, gather9_fast_##SUFFIX(v, rows, cnt), cnt);               \
+        } else {                                                                                    \
+            gather9_strided_##SUFFIX(v, src + base * s[0], s[0], s[1], s[2], cnt);                  \
+        }                                                                                           \
+    }                                                                                               \
+    static inline void scatter4_##SUFFIX(T *dst, T v[4][BLOCK], int cnt) {                          \
+        scatter4_tail_##SUFFIX(dst, v, scatter4_fast_##SUFFIX(dst, v, cnt), cnt);                   \
+    }                                                                                               \
+    static inline void scatter9_##SUFFIX(T *dst, T v[9][BLOCK], int cnt) {                          \
+        scatter9_tail_##SUFFIX(dst, v, scatter9_fast_##SUFFIX(dst, v, cnt), cnt);                   \
+    }
+
+DEFINE_MOVES(float, f32)
+DEFINE_MOVES(double, f64)
+
+#define DEFINE_KERNELS(T, SUFFIX, TINY, SQRT)                                                        \
+    CLONES static void q2m_forward_##SUFFIX(const Args *args, int64_t begin, int64_t end) {        \
+        T v[4][BLOCK], r[9][BLOCK];                                                                 \
+        const int f = args->first;                                                                  \
+        const T *w = v[component(f, 0)], *x = v[component(f, 1)];                                   \
+        const T *y = v[component(f, 2)], *z = v[component(f, 3)];                                   \
+        for (int64_t base = begin; base < end; base += BLOCK) {                                     \
+            const int cnt = (int)(end - base < BLOCK ? end - base : BLOCK);                         \
+            gather4_##SUFFIX(v, (const T *)args->a, args->sa, base, cnt);                           \
+            for (int j = 0; j < cnt; ++j) {                                                         \
+                T n2 = w[j] * w[j] + x[j] * x[j] + y[j] * y[j] + z[j] * z[j];                       \
+                /* the zero quaternion (and NaN) takes 1/|q| = 0: the identity (NaN stays NaN); */ \
+                /* the discarded 1/sqrt(0) = inf is never used in a product */                      \
+                T inv = n2 >= TINY ? (T)1 / SQRT(n2) : (T)0;                                        \
+                T uw = w[j] * inv, ux = x[j] * inv, uy = y[j] * inv, uz = z[j] * inv;               \
+                T x2 = (T)2 * ux, y2 = (T)2 * uy, z2 = (T)2 * uz;                                   \
+                T xx = x2 * ux, yy = y2 * uy, zz = z2 * uz;                                         \
+                T xy = x2 * uy, xz = x2 * uz, yz = y2 * uz;                                         \
+                T wx = x2 * uw, wy = y2 * uw, wz = z2 * uw;                                         \
+                r[0][j] = (T)1 - (yy + zz), r[1][j] = xy - wz, r[2][j] = xz + wy;                   \
+                r[3][j] = xy + wz, r[4][j] = (T)1 - (xx + zz), r[5][j] = yz - wx;                   \
+                r[6][j] = xz - wy, r[7][j] = yz + wx, r[8][j] = (T)1 - (xx + yy);                   \
+            }                                                                                       \
+            scatter9_##SUFFIX((T *)args->out + 9 * base, r, cnt);                                   \
+        }                                                                                           \
+    }                                                                                               \
+                                                                                                    \
+    CLONES static void q2m_backward_##SUFFIX(const Args *args, int64_t begin, int64_t end) {       \
+        T v[4][BLOCK], g[9][BLOCK], r[4][BLOCK];                                                    \
+        const int f = args->first;                                                                  \
+        const T *w = v[component(f, 0)], *x = v[component(f, 1)];                                   \
+        const T *y = v[component(f, 2)], *z = v[component(f, 3)];                                   \
+        T *rw = r[component(f, 0)], *rx = r[component(f, 1)];                                      \
+        T *ry = r[component(f, 2)], *rz = r[component(f, 3)];                                       \
+        for (int64_t base = begin; base < end; base += BLOCK) {                                     \
+            const int cnt = (int)(end - base < BLOCK ? end - base : BLOCK);                         \
+            gather4_##SUFFIX(v, (const T *)args->a, args->sa, base, cnt);                           \
+            gather9_##SUFFIX(g, (const T *)args->b, args->sb, base, cnt);                           \
+            for (int j = 0; j < cnt; ++j) {                                                         \
+                T n2 = w[j] * w[j] + x[j] * x[j] + y[j] * y[j] + z[j] * z[j];                       \
+                T inv = n2 >= TINY ? (T)1 / SQRT(n2) : (T)0;                                        \
+                T uw = w[j] * inv, ux = x[j] * inv, uy = y[j] * inv, uz = z[j] * inv;               \
+                T g00 = g[0][j], g01 = g[1][j], g02 = g[2][j];                                      \
+                T g10 = g[3][j], g11 = g[4][j], g12 = g[5][j];                                      \
+                T g20 = g[6][j], g21 = g[7][j], g22 = g[8][j];                                      \
+                T wx = g21 - g12, wy = g02 - g20, wz = g10 - g01;                                   \
+                T xy = g01 + g10, xz = g02 + g20, yz = g12 + g21;                                   \
+                T trace = g00 + g11 + g22;                                                          \
+                T gw = wx * ux + wy * uy + wz * uz;                                                 \
+                T gx = wx * uw + xy * uy + xz * uz + (T)2 * (g00 - trace) * ux;                     \
+                T gy = wy * uw + xy * ux + yz * uz + (T)2 * (g11 - trace) * uy;                     \
+                T gz = wz * uw + xz * ux + yz * uy + (T)2 * (g22 - trace) * uz;                     \
+                T radial = uw * gw + ux * gx + uy * gy + uz * gz;                                   \
+                T s = (T)2 * inv;                                                                   \
+                rw[j] = s * (gw - radial * uw), rx[j] = s * (gx - radial * ux);                     \
+                ry[j] = s * (gy - radial * uy), rz[j] = s * (gz - radial * uz);                     \
+            }                                                                                       \
+            scatter4_##SUFFIX((T *)args->out + 4 * base, r, cnt);                                   \
+        }                                                                                           \
+    }                                                                                               \
+                                                                                                    \
+    CLONES static void m2q_forward_##SUFFIX(const Args *args, int64_t begin, int64_t end) {        \
+        T m[9][BLOCK], r[4][BLOCK];                                                                 \
+        const int f = args->first;                                                                  \
+        T *rw = r[component(f, 0)], *rx = r[component(f, 1)];                                      \
+        T *ry = r[component(f, 2)], *rz = r[component(f, 3)];                                       \
+        for (int64_t base = begin; base < end; base += BLOCK) {                                     \
+            const int cnt = (int)(end - base < BLOCK ? end - base : BLOCK);                         \
+            gather9_##SUFFIX(m, (const T *)args->a, args->sa, base, cnt);                           \
+            for (int j = 0; j < cnt; ++j) {                                                         \
+                T m00 = m[0][j], m01 = m[1][j], m02 = m[2][j];                                      \
+                T m10 = m[3][j], m11 = m[4][j], m12 = m[5][j];                                      \
+                T m20 = m[6][j], m21 = m[7][j], m22 = m[8][j];                                      \
+                T t0 = (T)1 + m00 + m11 + m22, t1 = (T)1 + m00 - m11 - m22;                         \
+                T t2 = (T)1 - m00 + m11 - m22, t3 = (T)1 - m00 - m11 + m22;                         \
+                T wx = m21 - m12, wy = m02 - m20, wz = m10 - m01;                                   \
+                T xy = m01 + m10, xz = m02 + m20, yz = m12 + m21;                                   \
+                /* _core._m2q_choice: the larger pair, then the larger of it, ties to the lower */ \
+                T high01 = t0 >= t1 ? t0 : t1, high23 = t2 >= t3 ? t2 : t3;                         \
+                int use01 = high01 >= high23, use0 = t0 >= t1, use2 = t2 >= t3;                     \
+                T w = use01 ? (use0 ? t0 : wx) : (use2 ? wy : wz);                                  \
+                T x = use01 ? (use0 ? wx : t1) : (use2 ? xy : xz);                                  \
+                T y = use01 ? (use0 ? wy : xy) : (use2 ? t2 : yz);                                  \
+                T z = use01 ? (use0 ? wz : xz) : (use2 ? yz : t3);                                  \
+                /* |c| >= the largest pivot >= 1: the division is always safe */                    \
+                T inv = (T)1 / SQRT(w * w + x * x + y * y + z * z);                                 \
+                /* _core._negative_canonical, with bitwise operators: no branches */               \
+                int negative = (w < 0) |                                                            \
+                               ((w == 0) & ((x < 0) | ((x == 0) & ((y < 0) | ((y == 0) & (z < 0)))))); \
+                inv = negative ? -inv : inv;                                                        \
+                rw[j] = w * inv, rx[j] = x * inv, ry[j] = y * inv, rz[j] = z * inv;                 \
+            }                                                                                       \
+            scatter4_##SUFFIX((T *)args->out + 4 * base, r, cnt);                                   \
+        }                                                                                           \
+    }                                                                                               \
+                                                                                                    \
+    CLONES static void m2q_backward_##SUFFIX(const Args *args, int64_t begin, int64_t end) {       \
+        T m[9][BLOCK], v[4][BLOCK], h[4][BLOCK], r[9][BLOCK];                                       \
+        const int f = args->first;                                                                  \
+        const T *qw = v[component(f, 0)], *qx = v[component(f, 1)];                                 \
+        const T *qy = v[component(f, 2)], *qz = v[component(f, 3)];                                 \
+        const T *hw = h[component(f, 0)], *hx = h[component(f, 1)];                                 \
+        const T *hy = h[component(f, 2)], *hz = h[component(f, 3)];                                 \
+        for (int64_t base = begin; base < end; base += BLOCK) {                                     \
+            const int cnt = (int)(end - base < BLOCK ? end - base : BLOCK);                         \
+            gather9_##SUFFIX(m, (const T *)args->a, args->sa, base, cnt);                           \
+            gather4_##SUFFIX(v, (const T *)args->b, args->sb, base, cnt);                           \
+            gather4_##SUFFIX(h, (const T *)args->c, args->sc, base, cnt);                           \
+            for (int j = 0; j < cnt; ++j) {                                                         \
+                /* the choice needs only the diagonal */                                            \
+                T m00 = m[0][j], m11 = m[4][j], m22 = m[8][j];                                      \
+                T t0 = (T)1 + m00 + m11 + m22, t1 = (T)1 + m00 - m11 - m22;                         \
+                T t2 = (T)1 - m00 + m11 - m22, t3 = (T)1 - m00 - m11 + m22;                         \
+                T high01 = t0 >= t1 ? t0 : t1, high23 = t2 >= t3 ? t2 : t3;                         \
+                int use01 = high01 >= high23, use0 = t0 >= t1, use2 = t2 >= t3;                     \
+                T largest = use01 ? high01 : high23;                                                \
+                T w = qw[j], x = qx[j], y = qy[j], z = qz[j];                                       \
+                /* the scale +-1/|c| read back from q: component k of candidate k is the pivot */  \
+                /* t_k, and the largest pivot is at least 1 */                                      \
+                T inv = (use01 ? (use0 ? w : x) : (use2 ? y : z)) / largest;                        \
+                T dot = w * hw[j] + x * hx[j] + y * hy[j] + z * hz[j];                              \
+                T gw = inv * (hw[j] - w * dot), gx = inv * (hx[j] - x * dot);                       \
+                T gy = inv * (hy[j] - y * dot), gz = inv * (hz[j] - z * dot);                       \
+                /* row and column k of the symmetric K (row k = candidate k) receive the        */ \
+                /* candidate's cotangent: nested selects on the two-level choice, as in the     */ \
+                /* forward, which the compiler vectorises (integer masks it did not)            */ \
+                T tw = use01 ? (use0 ? gw : (T)0) : (T)0, tx = use01 ? (use0 ? (T)0 : gx) : (T)0;   \
+                T ty = use01 ? (T)0 : (use2 ? gy : (T)0), tz = use01 ? (T)0 : (use2 ? (T)0 : gz);   \
+                T cwx = use01 ? (use0 ? gx : gw) : (T)0;                                            \
+                T cwy = use01 ? (use0 ? gy : (T)0) : (use2 ? gw : (T)0);                            \
+                T cwz = use01 ? (use0 ? gz : (T)0) : (use2 ? (T)0 : gw);                            \
+                T cxy = use01 ? (use0 ? (T)0 : gy) : (use2 ? gx : (T)0);                            \
+                T cxz = use01 ? (use0 ? (T)0 : gz) : (use2 ? (T)0 : gx);                            \
+                T cyz = use01 ? (T)0 : (use2 ? gz : gy);                                            \
+                r[0][j] = tw + tx - ty - tz, r[1][j] = cxy - cwz, r[2][j] = cwy + cxz;              \
+                r[3][j] = cwz + cxy, r[4][j] = tw - tx + ty - tz, r[5][j] = cyz - cwx;              \
+                r[6][j] = cxz - cwy, r[7][j] = cwx + cyz, r[8][j] = tw - tx - ty + tz;              \
+            }                                                                                       \
+            scatter9_##SUFFIX((T *)args->out + 9 * base, r, cnt);                                   \
+        }                                                                                           \
+    }
+
+DEFINE_KERNELS(float, f32, FLT_MIN, sqrtf)
+DEFINE_KERNELS(double, f64, DBL_MIN, sqrt)
+
+/* Kernels by name and dtype (0: float32, 1: float64). */
+enum { Q2M_FORWARD, Q2M_BACKWARD, M2Q_FORWARD, M2Q_BACKWARD };
+static const Kernel KERNELS[4][2] = {
+    {q2m_forward_f32, q2m_forward_f64},
+    {q2m_backward_f32, q2m_backward_f64},
+    {m2q_forward_f32, m2q_forward_f64},
+    {m2q_backward_f32, m2q_backward_f64},
+};
+
+typedef struct {
+    Kernel kernel;
+    const Args *args;
+    int64_t begin, end;
+} Chunk;
+
+static void *run_chunk(void *arg) {
+    const Chunk *chunk = (const Chunk *)arg;
+    chunk->kernel(chunk->args, chunk->begin, chunk->end);
+    return NULL;
+}
+
+/* Below this many rows per thread, one thread: starting one costs ~10-30 us, a row ~1-3 ns. */
+#define MIN_ROWS_PER_THREAD 32768
+#define MAX_THREADS 64
+
+/* Run `kernel` over rows [0, n) on up to `threads` threads (the caller's among them). */
+static void run(Kernel kernel, const Args *args, int64_t n, int64_t threads) {
+    if (threads > MAX_THREADS) threads = MAX_THREADS;
+    if (threads > n / MIN_ROWS_PER_THREAD) threads = n / MIN_ROWS_PER_THREAD;
+    if (threads <= 1) {
+        kernel(args, 0, n);
+        return;
+    }
+    Chunk chunks[MAX_THREADS];
+    pthread_t ids[MAX_THREADS];
+    int started[MAX_THREADS] = {0};
+    for (int64_t t = 0; t < threads; ++t) {
+        chunks[t] = (Chunk){kernel, args, n * t / threads, n * (t + 1) / threads};
+    }
+    for (int64_t t = 1; t < threads; ++t) {
+        started[t] = pthread_create(&ids[t], NULL, run_chunk, &chunks[t]) == 0;
+        if (!started[t]) run_chunk(&chunks[t]); /* no thread to be had: do its share here */
+    }
+    run_chunk(&chunks[0]);
+    for (int64_t t = 1; t < threads; ++t) {
+        if (started[t]) pthread_join(ids[t], NULL);
+    }
+}
+
+/* The Python entry points take integers only (data pointers, strides in elements, sizes, flags),
+ * checked for count and type; the Python side guarantees that they describe valid tensors. */
+static int read_ints(PyObject *const *argv, Py_ssize_t argc, Py_ssize_t want, const char *name,
+                     int64_t *values) {
+    if (argc != want) {
+        PyErr_Format(PyExc_TypeError, "%s: expected %zd integer arguments, got %zd", name, want, argc);
+        return -1;
+    }
+    for (Py_ssize_t i = 0; i < argc; ++i) {
+        values[i] = PyLong_AsLongLong(argv[i]);
+        if (values[i] == -1 && PyErr_Occurred()) return -1;
+    }
+    return 0;
+}
+
+static PyObject *launch(Kernel kernel, const Args *args, int64_t n, int64_t threads) {
+    Py_BEGIN_ALLOW_THREADS
+    run(kernel, args, n, threads);
+    Py_END_ALLOW_THREADS
+    Py_RETURN_NONE;
+}
+
+#define PTR(v) ((void *)(intptr_t)(v))
+
+/* q2m_forward(dtype, threads, n, first, q, q_row, q_component, out) */
+static PyObject *q2m_forward(PyObject *self, PyObject *const *argv, Py_ssize_t argc) {
+    int64_t v[8];
+    if (read_ints(argv, argc, 8, "q2m_forward", v) < 0) return NULL;
+    Args args = {.a = PTR(v[4]), .sa = {v[5], v[6], 0}, .out = PTR(v[7]), .first = (int)v[3]};
+    return launch(KERNELS[Q2M_FORWARD][v[0] != 0], &args, v[2], v[1]);
+}
+
+/* q2m_backward(dtype, threads, n, first, q, q_row, q_component, grad, grad_row, grad_i, grad_j, out) */
+static PyObject *q2m_backward(PyObject *self, PyObject *const *argv, Py_ssize_t argc) {
+    int64_t v[12];
+    if (read_ints(argv, argc, 12, "q2m_backward", v) < 0) return NULL;
+    Args args = {.a = PTR(v[4]), .sa = {v[5], v[6], 0}, .b = PTR(v[7]), .sb = {v[8], v[9], v[10]},
+                 .out = PTR(v[11]), .first = (int)v[3]};
+    return launch(KERNELS[Q2M_BACKWARD][v[0] != 0], &args, v[2], v[1]);
+}
+
+/* m2q_forward(dtype, threads, n, first, m, m_row, m_i, m_j, out) */
+static PyObject *m2q_forward(PyObject *self, PyObject *const *argv, Py_ssize_t argc) {
+    int64_t v[9];
+    if (read_ints(argv, argc, 9, "m2q_forward", v) < 0) return NULL;
+    Args args = {.a = PTR(v[4]), .sa = {v[5], v[6], v[7]}, .out = PTR(v[8]), .first = (int)v[3]};
+    return launch(KERNELS[M2Q_FORWARD][v[0] != 0], &args, v[2], v[1]);
+}
+
+/* m2q_backward(dtype, threads, n, first, m, m_row, m_i, m_j, q, q_row, q_component,
+ *              grad, grad_row, grad_component, out) */
+static PyObject *m2q_backward(PyObject *self, PyObject *const *argv, Py_ssize_t argc) {
+    int64_t v[15];
+    if (read_ints(argv, argc, 15, "m2q_backward", v) < 0) return NULL;
+    Args args = {.a = PTR(v[4]), .sa = {v[5], v[6], v[7]}, .b = PTR(v[8]), .sb = {v[9], v[10], 0},
+                 .c = PTR(v[11]), .sc = {v[12], v[13], 0}, .out = PTR(v[14]), .first = (int)v[3]};
+    return launch(KERNELS[M2Q_BACKWARD][v[0] != 0], &args, v[2], v[1]);
+}
+
+static PyMethodDef methods[] = {
+    {"q2m_forward", (PyCFunction)(void (*)(void))q2m_forward, METH_FASTCALL,
+     "quaternion_to_matrix forward over raw buffers (see diffquat/torch/_fused.py)."},
+    {"q2m_backward", (PyCFunction)(void (*)(void))q2m_backward, METH_FASTCALL,
+     "quaternion_to_matrix backward over raw buffers."},
+    {"m2q_forward", (PyCFunction)(void (*)(void))m2q_forward, METH_FASTCALL,
+     "matrix_to_quaternion forward over raw buffers."},
+    {"m2q_backward", (PyCFunction)(void (*)(void))m2q_backward, METH_FASTCALL,
+     "matrix_to_quaternion backward over raw buffers."},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {
+    PyModuleDef_HEAD_INIT,
+    .m_name = "_kernels",
+    .m_doc = "quaternion_to_matrix and matrix_to_quaternion on the CPU, one pass each way (_kernels.c).",
+    .m_size = -1,
+    .m_methods = methods,
+};
+
+PyMODINIT_FUNC PyInit__kernels(void) { return PyModule_Create(&module); }

@@ -1,0 +1,42 @@
+# The C extension diffquat/torch/_kernels.c: integer arguments only (data pointers, strides in
+# elements, sizes and flags); diffquat/torch/_cpu.py is its only caller.
+
+def q2m_forward(
+    dtype: int, threads: int, n: int, first: int, q: int, q_row: int, q_component: int, out: int, /
+) -> None: ...
+def q2m_backward(
+    dtype: int,
+    threads: int,
+    n: int,
+    first: int,
+    q: int,
+    q_row: int,
+    q_component: int,
+    grad: int,
+    grad_row: int,
+    grad_i: int,
+    grad_j: int,
+    out: int,
+    /,
+) -> None: ...
+def m2q_forward(
+    dtype: int, threads: int, n: int, first: int, m: int, m_row: int, m_i: int, m_j: int, out: int, /
+) -> None: ...
+def m2q_backward(
+    dtype: int,
+    threads: int,
+    n: int,
+    first: int,
+    m: int,
+    m_row: int,
+    m_i: int,
+    m_j: int,
+    q: int,
+    q_row: int,
+    q_component: int,
+    grad: int,
+    grad_row: int,
+    grad_component: int,
+    out: int,
+    /,
+) -> None: ...

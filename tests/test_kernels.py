@@ -1,0 +1,226 @@
+"""The C kernels of ``quaternion_to_matrix`` and ``matrix_to_quaternion`` (diffquat/torch/_kernels.c,
+bound in _cpu.py): what the shared matrix and tests/test_fused.py do not already check through them.
+
+The shared matrix runs every case, dtype, gradient and transform through the public torch functions,
+which take the kernels for eager CPU tensors; tests/test_fused.py compares the kernels' Functions
+with the core at every edge case in float64, both storage orders, forward mode included. Here: that
+the extension is built at all (a silent fallback would hide it), float32 agreement, the strided
+inputs that the kernels read in place, batch shapes, the split over threads, and which calls take
+them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from cases import CASES_BY_NAME, oracle_quaternion_to_matrix
+from torch.autograd import forward_ad
+
+import diffquat.torch as dq
+from diffquat import _core
+from diffquat.torch import _cpu, _fused
+
+
+def test_the_extension_is_built() -> None:
+    """pip builds the kernels wherever a C compiler is (pyproject.toml); on such a machine (CI's) a
+    failed build must fail here, not fall back silently to the slower pure-torch paths."""
+    from diffquat.torch import _kernels
+
+    assert _fused._cpu is _cpu
+    assert callable(_kernels.q2m_forward)
+    assert _fused.q2m_path(torch.zeros(4)) is _cpu.quaternion_to_matrix
+    assert _fused.m2q_path(torch.zeros(3, 3)) is _cpu.matrix_to_quaternion
+
+
+def _quaternions(dtype: torch.dtype) -> torch.Tensor:
+    """Every named quaternion case, the zero quaternion and norms from 1e-15 to 1e15 among them."""
+    names = ("random", "identity", "half_turns", "near_half_turns", "near_identity", "norms", "zero")
+    qs = [CASES_BY_NAME[name].quaternions("float64").reshape(-1, 4) for name in names]
+    return torch.tensor(np.vstack(qs)).to(dtype)
+
+
+def _matrices(dtype: torch.dtype) -> torch.Tensor:
+    """Rotations of every unit case (half-turns with pivot ties among them), the same off SO(3), and
+    arbitrary matrices."""
+    names = ("random", "identity", "half_turns", "near_half_turns", "near_identity")
+    q = np.vstack([CASES_BY_NAME[name].quaternions("float64").reshape(-1, 4) for name in names])
+    rot = torch.tensor(oracle_quaternion_to_matrix(q))
+    noise = torch.randn(rot.shape, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
+    arbitrary = torch.randn(9, 3, 3, generator=torch.Generator().manual_seed(6), dtype=torch.float64)
+    return torch.cat([rot, rot + 0.05 * noise, arbitrary]).to(dtype)
+
+
+@pytest.mark.parametrize("scalar_first", [True, False])
+def test_float32_kernels_equal_the_core(scalar_first: bool) -> None:
+    """In float32 the kernels evaluate the core's operations in the core's order: values agree to
+    rounding, canonical signs exactly, and the gradients (away from the float32 range limits, where
+    the core's own autograd overflows) to rounding."""
+    order = [0, 1, 2, 3] if scalar_first else [1, 2, 3, 0]
+    q = _quaternions(torch.float32)
+    ours = _cpu.q2m_forward(q[..., order], scalar_first)
+    torch.testing.assert_close(ours, _core.quaternion_to_matrix(torch, q), rtol=0, atol=2e-7)
+    m = _matrices(torch.float32)
+    ours_q, core_q = _cpu.m2q_forward(m, scalar_first), _core.matrix_to_quaternion(torch, m)
+    torch.testing.assert_close(ours_q, core_q[..., order], rtol=0, atol=2e-7)
+    assert torch.equal(torch.sign(ours_q), torch.sign(core_q[..., order]))
+    unit = q[: -len(CASES_BY_NAME["norms"].quaternions("float64")) - 1]
+    for fn, core, x, stored in (
+        (dq.quaternion_to_matrix, _core.quaternion_to_matrix, unit, order),
+        (dq.matrix_to_quaternion, _core.matrix_to_quaternion, m, slice(None)),
+    ):
+        a, b = x.clone().requires_grad_(True), x.clone().requires_grad_(True)
+        out = fn(a[..., stored], scalar_first=scalar_first)
+        expected = core(torch, b[..., stored], scalar_first=scalar_first)
+        cot = torch.randn(out.shape, generator=torch.Generator().manual_seed(7))
+        (g_ours,) = torch.autograd.grad(out, a, cot)
+        (g_core,) = torch.autograd.grad(expected, b, cot)
+        torch.testing.assert_close(g_ours, g_core, rtol=1e-5, atol=1e-5)
+
+
+def _grad(fn: object, x: torch.Tensor, cot: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    x = x.detach().requires_grad_(True)
+    out = fn(x)  # type: ignore[operator]
+    (g,) = torch.autograd.grad(out, x, cot)
+    return out.detach(), g
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32], ids=str)
+def test_strided_inputs_are_read_in_place(dtype: torch.dtype) -> None:
+    """Inputs the kernels read through their strides without a copy (a slice, every other row, a
+    transposed matrix, an expanded cotangent, scalar-last storage) give what contiguous copies give,
+    values and gradients."""
+    gen = torch.Generator().manual_seed(8)
+    wide = torch.randn(40, 8, generator=gen, dtype=dtype)
+    q = wide[::2, 2:6]  # rows 16 elements apart, components contiguous
+    assert not q.is_contiguous()
+    cot = torch.randn(20, 3, 3, generator=gen, dtype=dtype)
+    for scalar_first in (True, False):
+        strided = _grad(lambda t, s=scalar_first: dq.quaternion_to_matrix(t, scalar_first=s), q, cot)
+        dense = _grad(
+            lambda t, s=scalar_first: dq.quaternion_to_matrix(t, scalar_first=s), q.contiguous(), cot
+        )
+        for a, b in zip(strided, dense, strict=True):
+            assert torch.equal(a, b)
+    m = dq.quaternion_to_matrix(torch.randn(20, 4, generator=gen, dtype=dtype)) + 0.1
+    cot4 = torch.randn(20, 4, generator=gen, dtype=dtype)
+    wider = torch.randn(20, 3, 5, generator=gen, dtype=dtype)
+    batch_last = torch.randn(3, 3, 20, generator=gen, dtype=dtype)
+    for matrix in (m.mT, wider[:, :, 1:4], batch_last.permute(2, 0, 1)):
+        assert not matrix.is_contiguous()
+        strided = _grad(dq.matrix_to_quaternion, matrix, cot4)
+        dense = _grad(dq.matrix_to_quaternion, matrix.contiguous(), cot4)
+        for a, b in zip(strided, dense, strict=True):
+            assert torch.equal(a, b)
+    # an expanded cotangent (stride 0, what .sum().backward() hands the Function)
+    for fn, x in ((dq.quaternion_to_matrix, q), (dq.matrix_to_quaternion, m)):
+        a, b = x.detach().clone().requires_grad_(True), x.detach().clone().requires_grad_(True)
+        fn(a).sum().backward()
+        (fn(b) * 1.0).backward(torch.ones(fn(b).shape, dtype=dtype))
+        assert a.grad is not None and b.grad is not None
+        assert torch.equal(a.grad, b.grad)
+
+
+@pytest.mark.parametrize("shape", [(), (0,), (2, 0, 3), (3, 1, 2), (7,)], ids=str)
+def test_batch_shapes(shape: tuple[int, ...]) -> None:
+    """Any leading shape, scalar and empty batches included, and batch dimensions that do not
+    flatten into one without a copy."""
+    gen = torch.Generator().manual_seed(9)
+    q = torch.randn(*shape, 4, generator=gen, dtype=torch.float64)
+    r = dq.quaternion_to_matrix(q)
+    assert r.shape == (*shape, 3, 3)
+    torch.testing.assert_close(r, _core.quaternion_to_matrix(torch, q), rtol=0, atol=1e-15)
+    back = dq.matrix_to_quaternion(r)
+    assert back.shape == (*shape, 4)
+    torch.testing.assert_close(back, _core.matrix_to_quaternion(torch, r), rtol=0, atol=1e-15)
+    if len(shape) == 3:  # (3, 1, 2) batch, permuted: its rows are no longer evenly spaced
+        permuted = q.permute(2, 1, 0, 3)
+        torch.testing.assert_close(
+            dq.quaternion_to_matrix(permuted), _core.quaternion_to_matrix(torch, permuted), rtol=0, atol=1e-15
+        )
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_rows_split_over_threads(threads: int) -> None:
+    """Batches large enough to be split over threads (in uneven shares for 3) give the core's values
+    and gradients in every row, the last ones included."""
+    n = 3 * 32768 + 5
+    gen = torch.Generator().manual_seed(10)
+    q = torch.randn(n, 4, generator=gen, dtype=torch.float64)
+    q[-1] = 0.0
+    cot9 = torch.randn(n, 3, 3, generator=gen, dtype=torch.float64)
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        r, g = _grad(dq.quaternion_to_matrix, q, cot9)
+        m = r + 0.01 * cot9
+        qm, gm = _grad(dq.matrix_to_quaternion, m, q)
+    finally:
+        torch.set_num_threads(before)
+    r_core, g_core = _grad(lambda t: _core.quaternion_to_matrix(torch, t), q, cot9)
+    torch.testing.assert_close(r, r_core, rtol=0, atol=4e-15)
+    torch.testing.assert_close(g, g_core, rtol=1e-12, atol=1e-12)
+    qm_core, gm_core = _grad(lambda t: _core.matrix_to_quaternion(torch, t), m, q)
+    torch.testing.assert_close(qm, qm_core, rtol=0, atol=4e-15)
+    torch.testing.assert_close(gm, gm_core, rtol=1e-12, atol=1e-12)
+
+
+def test_which_calls_take_the_kernels() -> None:
+    """Plain tensors and parameters take the kernels: through the Function where a derivative can be
+    asked for (``requires_grad`` or a forward-mode dual tensor), directly where none can; a tensor
+    subclass with its own dispatch and ``torch.func`` transforms take the torch paths."""
+    q = torch.randn(5, 4, dtype=torch.float64)
+    assert dq.quaternion_to_matrix(q).grad_fn is None
+    param = torch.nn.Parameter(q.clone())
+    assert type(dq.quaternion_to_matrix(param).grad_fn).__name__ == "QuaternionToMatrixKernelBackward"
+    with torch.no_grad():
+        assert dq.quaternion_to_matrix(param).grad_fn is None
+    m = dq.quaternion_to_matrix(q).requires_grad_(True)
+    assert type(dq.matrix_to_quaternion(m).grad_fn).__name__ == "MatrixToQuaternionKernelBackward"
+
+    class Traced(torch.Tensor):
+        pass
+
+    assert not _cpu.usable(q.as_subclass(Traced))
+    assert _fused.q2m_path(q.as_subclass(Traced)) is not _cpu.quaternion_to_matrix
+
+    def path(t: torch.Tensor) -> torch.Tensor:
+        assert _fused.q2m_path(t) is not _cpu.quaternion_to_matrix
+        return dq.quaternion_to_matrix(t)
+
+    torch.func.vmap(path)(q)
+
+
+# Forward-mode AD goes through a torch module that still uses torch.jit.script.
+@pytest.mark.filterwarnings("ignore:`torch.jit.script` is deprecated:DeprecationWarning")
+def test_forward_mode_without_requires_grad() -> None:
+    """A dual tensor that does not require grad still gets its tangent through (the kernels' direct
+    call would drop it): the jvp equals the core's."""
+    gen = torch.Generator().manual_seed(11)
+    q = torch.randn(6, 4, generator=gen, dtype=torch.float64)
+    dq_ = torch.randn(6, 4, generator=gen, dtype=torch.float64)
+    m = dq.quaternion_to_matrix(q) + 0.05 * torch.randn(6, 3, 3, generator=gen, dtype=torch.float64)
+    dm = torch.randn(6, 3, 3, generator=gen, dtype=torch.float64)
+    for public, core, x, t in (
+        (dq.quaternion_to_matrix, _core.quaternion_to_matrix, q, dq_),
+        (dq.matrix_to_quaternion, _core.matrix_to_quaternion, m, dm),
+    ):
+        with forward_ad.dual_level():
+            ours = forward_ad.unpack_dual(public(forward_ad.make_dual(x, t))).tangent
+            theirs = forward_ad.unpack_dual(core(torch, forward_ad.make_dual(x, t))).tangent
+        assert ours is not None and theirs is not None
+        torch.testing.assert_close(ours, theirs, rtol=1e-12, atol=1e-12)
+
+
+def test_unusual_cotangent_takes_the_torch_formula() -> None:
+    """A cotangent the kernels cannot read as a plain buffer (here a tensor subclass, as tracing tools
+    pass) goes through the differentiable torch formula instead, with the same result."""
+
+    class Wrapped(torch.Tensor):
+        pass
+
+    gen = torch.Generator().manual_seed(12)
+    q = torch.randn(4, 4, generator=gen, dtype=torch.float64, requires_grad=True)
+    cot = torch.randn(4, 3, 3, generator=gen, dtype=torch.float64)
+    (plain,) = torch.autograd.grad(dq.quaternion_to_matrix(q), q, cot)
+    (wrapped,) = torch.autograd.grad(dq.quaternion_to_matrix(q), q, cot.as_subclass(Wrapped))
+    torch.testing.assert_close(torch.Tensor(wrapped), plain, rtol=1e-12, atol=1e-12)
