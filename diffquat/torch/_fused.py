@@ -1,4 +1,9 @@
-"""Eager fast paths of ``quaternion_to_matrix`` and ``matrix_to_quaternion`` on torch.
+"""Eager fast paths of ``quaternion_to_matrix`` and ``matrix_to_quaternion`` on torch, and the
+dispatch between every path (:func:`q2m_path`, :func:`m2q_path`).
+
+On the CPU the eager default is the C kernels of :mod:`._cpu` (one pass each way). The Functions here
+are what runs where those do not: under ``torch.func`` transforms (the ``setup_context`` Functions,
+which have vmap rules), and where the extension was not built (no C compiler at install time).
 
 Small batches: a ``torch.autograd.Function`` for each whose linear part is one small matrix product
 with the constant forms of :mod:`diffquat._fused`: seven operations forward and eight backward for
