@@ -224,3 +224,14 @@ def test_unusual_cotangent_takes_the_torch_formula() -> None:
     (plain,) = torch.autograd.grad(dq.quaternion_to_matrix(q), q, cot)
     (wrapped,) = torch.autograd.grad(dq.quaternion_to_matrix(q), q, cot.as_subclass(Wrapped))
     torch.testing.assert_close(torch.Tensor(wrapped), plain, rtol=1e-12, atol=1e-12)
+
+
+def test_lazily_negated_views() -> None:
+    """A negated view (``torch._neg_view``: the buffer holds the values before the sign change) is
+    not read as a raw buffer: both conversions give the values of the materialised tensor."""
+    gen = torch.Generator().manual_seed(13)
+    q = torch.randn(5, 4, generator=gen, dtype=torch.float64)
+    m = dq.quaternion_to_matrix(q)
+    assert torch._neg_view(m).is_neg()
+    torch.testing.assert_close(dq.matrix_to_quaternion(torch._neg_view(m)), dq.matrix_to_quaternion(-m))
+    torch.testing.assert_close(dq.quaternion_to_matrix(torch._neg_view(q)), dq.quaternion_to_matrix(-q))

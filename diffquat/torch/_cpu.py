@@ -32,13 +32,17 @@ _DTYPE = {torch.float32: 0, torch.float64: 1}
 
 
 def usable(x: Any) -> bool:
-    """A dense CPU tensor (a plain tensor or a parameter, not a subclass with its own dispatch, such
-    as the fake tensors of tracing) outside ``torch.func`` transforms (a kernel has no vmap rule).
-    Half precision counts: the backend computes it in float32 before the kernel sees it."""
+    """A dense CPU tensor whose buffer holds its values (a plain tensor or a parameter, not a subclass
+    with its own dispatch such as the fake tensors of tracing, nor a lazily negated or conjugated
+    view, whose buffer holds the values before the sign change), outside ``torch.func`` transforms
+    (a kernel has no vmap rule). Half precision counts: the backend computes it in float32 before the
+    kernel sees it."""
     return (
         type(x) in (Tensor, torch.nn.Parameter)
         and x.device.type == "cpu"
         and x.layout == torch.strided
+        and not x.is_neg()
+        and not x.is_conj()
         and not torch._C._are_functorch_transforms_active()
     )
 
