@@ -17,7 +17,7 @@
  *   - its backward: _core.matrix_to_quaternion_cotangent, the scale read back from the result.
  *
  * No Python objects are touched inside the loops, so they run without the GIL. It does not depend
- * on torch: the Python side (diffquat/torch/_fused.py) passes data pointers and strides in elements,
+ * on torch: the Python side (diffquat/torch/_cpu.py) passes data pointers and strides in elements,
  * so strided inputs (an expanded cotangent, scalar-last storage, a transposed matrix) are read in
  * place instead of copied. Outputs are contiguous. Large batches are split over threads.
  */
@@ -101,8 +101,9 @@ DEFINE_ROWS(double, f64, 9)
 
 #if defined(__SSE2__)
 #include <immintrin.h>
-/* float32: four rows at a time, a 4 x 4 transpose per four entries (a row of 9 is two vectors and
- * one scalar). Returns the number of rows done. */
+/* The fast moves of contiguous rows ("_fast_"): they move as many rows as they can and return how
+ * many; the one-row loops above ("_tail_") do the rest. float32 on x86-64: four rows at a time, a
+ * 4 x 4 transpose per four entries (a row of 9 is two vectors and one scalar). */
 static inline void store_columns(float v[][BLOCK], int e, int j, __m128 a0, __m128 a1, __m128 a2,
                                  __m128 a3) {
     _MM_TRANSPOSE4_PS(a0, a1, a2, a3);
@@ -159,17 +160,18 @@ static inline int scatter9_fast_f32(float *dst, float v[9][BLOCK], int cnt) {
     }
     return j;
 }
-#else
-static inline int gather4_fast_f32(float v[4][BLOCK], const float *src, int cnt) { return 0; }
-static inline int gather9_fast_f32(float v[9][BLOCK], const float *src, int cnt) { return 0; }
-static inline int scatter4_fast_f32(float *dst, float v[4][BLOCK], int cnt) { return 0; }
-static inline int scatter9_fast_f32(float *dst, float v[9][BLOCK], int cnt) { return 0; }
 #endif
-/* float64 rows go one at a time (the compiler vectorises the fixed offsets where it can). */
-static inline int gather4_fast_f64(double v[4][BLOCK], const double *src, int cnt) { return 0; }
-static inline int gather9_fast_f64(double v[9][BLOCK], const double *src, int cnt) { return 0; }
-static inline int scatter4_fast_f64(double *dst, double v[4][BLOCK], int cnt) { return 0; }
-static inline int scatter9_fast_f64(double *dst, double v[9][BLOCK], int cnt) { return 0; }
+/* Without such moves (float64; float32 off x86-64) every row goes through the one-row loops, whose
+ * fixed offsets the compiler vectorises where it can: the fast moves move no row. */
+#define DEFINE_NO_FAST_MOVES(T, SUFFIX)                                                             \
+    static inline int gather4_fast_##SUFFIX(T v[4][BLOCK], const T *src, int cnt) { return 0; }     \
+    static inline int gather9_fast_##SUFFIX(T v[9][BLOCK], const T *src, int cnt) { return 0; }     \
+    static inline int scatter4_fast_##SUFFIX(T *dst, T v[4][BLOCK], int cnt) { return 0; }          \
+    static inline int scatter9_fast_##SUFFIX(T *dst, T v[9][BLOCK], int cnt) { return 0; }
+#if !defined(__SSE2__)
+DEFINE_NO_FAST_MOVES(float, f32)
+#endif
+DEFINE_NO_FAST_MOVES(double, f64)
 
 /* A block of quaternions (strides s: row, component) or of matrices (row, matrix row, matrix
  * column) from row `base` on, gathered in storage order; a block of contiguous output rows. */
