@@ -190,6 +190,36 @@ def test_matrix_to_quaternion_gradient_off_rotation_matrices(name: str) -> None:
         check_grads(fn, (jnp.asarray(matrices),), order=2, modes=("fwd", "rev"), eps=1e-6)
 
 
+@pytest.mark.parametrize("name", ["torch", "jax"])
+def test_matrix_to_quaternion_scalar_last_gradient(name: str) -> None:
+    """jax builds the scalar-last conversion with a derivative rule of its own (in that order; see
+    diffquat.jax): its pullback of a cotangent is the scalar-first pullback of the same cotangent
+    reordered, on every backend, and jax's rule is right to second order in both modes."""
+    backend = BACKENDS[name]
+    matrices = perturbed_rotations(16, seed=10)
+    cot = np.random.default_rng(1).normal(size=(16, 4))  # (x, y, z, w)
+
+    def pullback(scalar_first: bool, g: np.ndarray) -> np.ndarray:
+        def fn(m: Any) -> Any:
+            return backend.module.matrix_to_quaternion(m, scalar_first=scalar_first)
+
+        if name == "torch":
+            m = torch.tensor(matrices, requires_grad=True)
+            return torch.autograd.grad(fn(m), m, torch.tensor(g))[0].numpy()
+        return np.asarray(jax.vjp(fn, jnp.asarray(matrices))[1](jnp.asarray(g))[0])
+
+    reordered = cot[:, [3, 0, 1, 2]]  # (w, x, y, z)
+    np.testing.assert_allclose(pullback(False, cot), pullback(True, reordered), rtol=1e-12, atol=1e-12)
+    if name == "jax":
+        check_grads(
+            lambda m: backend.module.matrix_to_quaternion(m, scalar_first=False),
+            (jnp.asarray(matrices),),
+            order=2,
+            modes=("fwd", "rev"),
+            eps=1e-6,
+        )
+
+
 @only(backend=lambda b: b in ("torch", "jax"))
 def test_gradient_is_finite_in_every_dtype(op: Op, backend: Backend, dtype: str) -> None:
     """The float64 checks above prove gradients right; this proves them finite where users train, in

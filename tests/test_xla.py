@@ -28,3 +28,18 @@ def test_each_cosine_and_sine_is_evaluated_once(name: str) -> None:
     assert hlo is not None
     assert len(re.findall(r" cosine\(", hlo)) == angles
     assert len(re.findall(r" sine\(", hlo)) == angles
+
+
+@pytest.mark.parametrize("scalar_first", [True, False], ids=["wxyz", "xyzw"])
+def test_matrix_to_quaternion_cotangent_is_one_stack(scalar_first: bool) -> None:
+    """The reverse-mode program of matrix_to_quaternion assembles the (..., 3, 3) cotangent in one
+    stack of the nine entries, not as nine zero-padded copies of the matrix summed (see
+    ``_core._tangent_entries``), and the scalar-last result is built in its order, not reindexed."""
+
+    def loss(m: Any) -> Any:
+        weights = jnp.arange(4.0, dtype=jnp.float32)[None]
+        return (dq.matrix_to_quaternion(m, scalar_first=scalar_first) * weights).sum()
+
+    hlo = jax.jit(jax.grad(loss)).lower(jnp.ones((1024, 3, 3), jnp.float32)).compile().as_text()
+    assert hlo is not None
+    assert not re.findall(r" pad\(", hlo)
