@@ -295,15 +295,15 @@ def _m2q_recover_scale(xp: Any, matrix: Any, q: Any) -> tuple[Any, Any, Any, Any
 
 
 class _Unstacked:
-    """The nine entries of a ``(..., 3, 3)`` array, taken apart once with the array API's ``unstack``
-    and indexed as the array is (``m[..., a, b]``)."""
+    """The nine entries of a ``(..., 3, 3)`` array, taken apart with the array API's ``unstack`` (into
+    rows, then each row into entries) and indexed as the array is (``m[..., a, b]``)."""
 
     def __init__(self, xp: Any, matrix: Any) -> None:
-        self._entries = xp.unstack(xp.reshape(matrix, (*matrix.shape[:-2], 9)), axis=-1)
+        self._rows = [xp.unstack(row, axis=-1) for row in xp.unstack(matrix, axis=-2)]
 
     def __getitem__(self, index: tuple[Any, int, int]) -> Any:
         _, a, b = index
-        return self._entries[3 * a + b]
+        return self._rows[a][b]
 
 
 def _tangent_entries(xp: Any, tangent: Any) -> Any:
@@ -311,10 +311,12 @@ def _tangent_entries(xp: Any, tangent: Any) -> Any:
 
     The transpose of reading one entry (a slice) is a zero-padded copy of the whole ``(..., 3, 3)``
     cotangent, so nine entries read become nine padded copies summed, which XLA:CPU evaluates entry by
-    entry, each of the nine expressions for every one of the nine outputs. The transpose of one
-    ``unstack`` is one ``stack``: forward + backward 1.2x faster at N = 262144 (benchmarks/). Only
-    where the namespace has ``unstack`` (jax; for numpy >= 2.1 it reads the same values); the torch
-    rule is never transposed, and reading the primal matrix this way measured 2x slower forward."""
+    entry, all nine expressions for each of the nine outputs. The transpose of an ``unstack`` is a
+    ``stack``; rows of three, then three rows, because XLA:CPU fuses a stack of at most eight operands
+    into the loop that computes them (nine flat entries became nine loops and a copy, 2-4x slower
+    below N = 1024). Forward + backward: 1.3x faster at N = 262144, level at N <= 256 (benchmarks/).
+    Only where the namespace has ``unstack`` (jax; numpy >= 2.1 reads the same values); the torch rule
+    is never transposed, and reading the primal matrix this way measured 2x slower forward."""
     return _Unstacked(xp, tangent) if hasattr(xp, "unstack") else tangent
 
 
