@@ -43,3 +43,18 @@ def test_matrix_to_quaternion_cotangent_is_one_stack(scalar_first: bool) -> None
     hlo = jax.jit(jax.grad(loss)).lower(jnp.ones((1024, 3, 3), jnp.float32)).compile().as_text()
     assert hlo is not None
     assert not re.findall(r" pad\(", hlo)
+
+
+@pytest.mark.parametrize("scalar_first", [True, False], ids=["wxyz", "xyzw"])
+def test_quaternion_to_matrix_cotangent_is_one_stack(scalar_first: bool) -> None:
+    """The reverse-mode program of quaternion_to_matrix assembles the (..., 4) cotangent in one stack
+    of the four components, not as four zero-padded copies of the quaternion summed (see
+    ``_core.unstack_quaternion``)."""
+
+    def loss(q: Any) -> Any:
+        weights = jnp.arange(9.0, dtype=jnp.float32).reshape(1, 3, 3)
+        return (dq.quaternion_to_matrix(q, scalar_first=scalar_first) * weights).sum()
+
+    hlo = jax.jit(jax.grad(loss)).lower(jnp.ones((1024, 4), jnp.float32)).compile().as_text()
+    assert hlo is not None
+    assert not re.findall(r" pad\(", hlo)
