@@ -326,7 +326,7 @@ def _tangent_entries(xp: Any, tangent: Any) -> Any:
     entry, all nine expressions for each of the nine outputs. The transpose of an ``unstack`` is a
     ``stack``; rows of three, then three rows, because XLA:CPU fuses a stack of at most eight operands
     into the loop that computes them (nine flat entries became nine loops and a copy, 2-4x slower
-    below N = 1024). Forward + backward: 1.3x faster at N = 262144, level at N <= 256 (benchmarks/).
+    below N = 1024). Forward + backward: 1.5x faster at N = 262144, level at N <= 256 (benchmarks/).
     Only where the namespace has ``unstack`` (jax; numpy >= 2.1 reads the same values); the torch rule
     is never transposed, and reading the primal matrix this way measured 2x slower forward."""
     return _Unstacked(xp, tangent) if hasattr(xp, "unstack") else tangent
