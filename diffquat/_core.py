@@ -412,7 +412,7 @@ def normalize_quaternion(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
     Returns:
         Unit quaternions, shape ``(..., 4)``, the sign of ``q`` kept.
     """
-    w, x, y, z = unstack_quaternion(xp, q, scalar_first)
+    w, x, y, z = split_quaternion(q, scalar_first)
     n2 = w * w + x * x + y * y + z * z
     nonzero = n2 >= xp.finfo(n2.dtype).tiny
     # Double where: the discarded branch sees n2 = 1, so 1/sqrt and its derivative stay finite at 0.
