@@ -220,6 +220,23 @@ def test_matrix_to_quaternion_scalar_last_gradient(name: str) -> None:
         )
 
 
+@pytest.mark.parametrize("scalar_first", [True, False], ids=["wxyz", "xyzw"])
+def test_jax_matrix_to_quaternion_value_under_differentiation(scalar_first: bool) -> None:
+    """Under differentiation jax takes matrix_to_quaternion's value from its forward-mode rule (the
+    core formula's scale, shared with the tangent), not from the plain forward (the stacked order):
+    the two agree to the last bits of float32 and in sign, half-turns included."""
+    quaternions = np.concatenate([c.quaternions("float64").reshape(-1, 4) for c in CASES if c.name != "zero"])
+    matrices = jnp.asarray(oracle_quaternion_to_matrix(quaternions), jnp.float32)
+
+    def fn(m: Any) -> Any:
+        return BACKENDS["jax"].module.matrix_to_quaternion(m, scalar_first=scalar_first)
+
+    plain = np.asarray(jax.jit(fn)(matrices))
+    differentiated = np.asarray(jax.jit(lambda m: jax.vjp(fn, m)[0])(matrices))
+    np.testing.assert_allclose(differentiated, plain, rtol=0, atol=4 * np.finfo(np.float32).eps)
+    np.testing.assert_array_equal(np.sign(differentiated), np.sign(plain))
+
+
 @only(backend=lambda b: b in ("torch", "jax"))
 def test_gradient_is_finite_in_every_dtype(op: Op, backend: Backend, dtype: str) -> None:
     """The float64 checks above prove gradients right; this proves them finite where users train, in

@@ -160,9 +160,11 @@ def test_cases_cover_the_named_edge_cases() -> None:
 
 def test_matrix_to_quaternion_evaluation_orders_agree(backend: Backend, case: Case) -> None:
     """The jax backend evaluates ``matrix_to_quaternion`` in the core's stacked order (whole-candidate
-    selection, which XLA compiles twice as fast); numpy and torch evaluate the component-wise formula.
-    Both are the same map on every namespace: equal to rounding and in the same sign, for every case
-    (half-turns with tied pivots included) and for arbitrary matrices, in both storage orders."""
+    selection, which XLA compiles twice as fast), and under differentiation takes the result from its
+    forward-mode rule (``matrix_to_quaternion_jvp``); numpy and torch evaluate the component-wise
+    formula. All three are the same map on every namespace: equal to rounding and in the same sign,
+    for every case (half-turns with tied pivots included) and for arbitrary matrices, in both storage
+    orders."""
     import jax.numpy as jnp
     import torch
 
@@ -183,5 +185,7 @@ def test_matrix_to_quaternion_evaluation_orders_agree(backend: Backend, case: Ca
         for scalar_first in (True, False):
             a = backend.to_numpy(_core.matrix_to_quaternion(xp, matrix, scalar_first=scalar_first))
             b = backend.to_numpy(_core.matrix_to_quaternion_stacked(xp, matrix, scalar_first=scalar_first))
-            np.testing.assert_allclose(b, a, rtol=0, atol=1e-15)
-            np.testing.assert_array_equal(np.sign(b), np.sign(a))
+            c, _ = _core.matrix_to_quaternion_jvp(xp, matrix, matrix, scalar_first=scalar_first)
+            for other in (b, backend.to_numpy(c)):
+                np.testing.assert_allclose(other, a, rtol=0, atol=1e-15)
+                np.testing.assert_array_equal(np.sign(other), np.sign(a))

@@ -1,5 +1,6 @@
 """Custom derivatives for jax: one ``custom_jvp`` per core map whose library derivative is unstable
-(SVD, eigh). The formulas live in the core, over ``xp``; this only registers them."""
+(SVD, eigh) or slow (matrix_to_quaternion). The formulas live in the core, over ``xp``; this only
+registers them."""
 
 from __future__ import annotations
 
@@ -34,6 +35,29 @@ def custom_derivative(
         (x,), (dx,) = primals, tangents
         y = fn(x)
         return y, tangent(XP, x, y, dx)
+
+    def bound(xp: Any, x: Array) -> Array:
+        return fn(x)
+
+    bound.__name__ = forward.__name__  # the Backend validates arguments by this name
+    return bound
+
+
+def custom_jvp_rule(
+    forward: Callable[[Any, Array], Array], jvp: Callable[[Any, Array, Array], tuple[Array, Array]]
+) -> Callable[[Any, Array], Array]:
+    """``forward(xp, x) -> y`` with a forward-mode rule ``jvp(xp, x, dx) -> (y, dy)`` that computes the
+    primal itself, where it shares work with the tangent that XLA then does once. The primal of the
+    rule is differentiated as written (autodiff), so every higher order works as above."""
+
+    @jax.custom_jvp
+    def fn(x: Array) -> Array:
+        return forward(XP, x)
+
+    @fn.defjvp
+    def fn_jvp(primals: tuple[Array], tangents: tuple[Array]) -> tuple[Array, Array]:
+        (x,), (dx,) = primals, tangents
+        return jvp(XP, x, dx)
 
     def bound(xp: Any, x: Array) -> Array:
         return fn(x)
