@@ -15,6 +15,29 @@ from ._namespace import XP
 Formula = Callable[[Any, Array, Array, Array], Array]
 
 
+Rule = Callable[[Callable[[Array], Array], Array, Array], tuple[Array, Array]]
+
+
+def _registered(forward: Callable[[Any, Array], Array], rule: Rule) -> Callable[[Any, Array], Array]:
+    """``forward(xp, x)`` as a ``custom_jvp`` whose rule is ``rule(fn, x, dx) -> (y, dy)`` (``fn`` the
+    registered function itself), bound as ``(xp, x)`` like the core functions."""
+
+    @jax.custom_jvp
+    def fn(x: Array) -> Array:
+        return forward(XP, x)
+
+    @fn.defjvp
+    def fn_jvp(primals: tuple[Array], tangents: tuple[Array]) -> tuple[Array, Array]:
+        (x,), (dx,) = primals, tangents
+        return rule(fn, x, dx)
+
+    def bound(xp: Any, x: Array) -> Array:
+        return fn(x)
+
+    bound.__name__ = forward.__name__  # the Backend validates arguments by this name
+    return bound
+
+
 def custom_derivative(
     forward: Callable[[Any, Array], Array], tangent: Formula, cotangent: Formula | None = None
 ) -> Callable[[Any, Array], Array]:
@@ -26,21 +49,11 @@ def custom_derivative(
     here; where given, it is the same formula, used by the torch backend."""
     del cotangent
 
-    @jax.custom_jvp
-    def fn(x: Array) -> Array:
-        return forward(XP, x)
-
-    @fn.defjvp
-    def fn_jvp(primals: tuple[Array], tangents: tuple[Array]) -> tuple[Array, Array]:
-        (x,), (dx,) = primals, tangents
+    def rule(fn: Callable[[Array], Array], x: Array, dx: Array) -> tuple[Array, Array]:
         y = fn(x)
         return y, tangent(XP, x, y, dx)
 
-    def bound(xp: Any, x: Array) -> Array:
-        return fn(x)
-
-    bound.__name__ = forward.__name__  # the Backend validates arguments by this name
-    return bound
+    return _registered(forward, rule)
 
 
 def custom_jvp_rule(
@@ -49,18 +62,4 @@ def custom_jvp_rule(
     """``forward(xp, x) -> y`` with a forward-mode rule ``jvp(xp, x, dx) -> (y, dy)`` that computes the
     primal itself, where it shares work with the tangent that XLA then does once. The primal of the
     rule is differentiated as written (autodiff), so every higher order works as above."""
-
-    @jax.custom_jvp
-    def fn(x: Array) -> Array:
-        return forward(XP, x)
-
-    @fn.defjvp
-    def fn_jvp(primals: tuple[Array], tangents: tuple[Array]) -> tuple[Array, Array]:
-        (x,), (dx,) = primals, tangents
-        return jvp(XP, x, dx)
-
-    def bound(xp: Any, x: Array) -> Array:
-        return fn(x)
-
-    bound.__name__ = forward.__name__  # the Backend validates arguments by this name
-    return bound
+    return _registered(forward, lambda fn, x, dx: jvp(XP, x, dx))
