@@ -349,9 +349,9 @@ def matrix_to_quaternion_tangent(
     ``dq = +-(dc - q (q . dc)) / |c|`` with ``dc`` the same candidate of the tangent: only the selected
     candidate is differentiated, where autodiff of the formula carries all four through the selection."""
     pivots, candidates = _m2q_candidates(matrix, 1.0)
-    # The scale is rebuilt from the candidates here (not read back from q as in the cotangent): jax
-    # linearises this rule, and XLA fuses the rebuilt scale into the forward pass, where reading it
-    # back from q measured twice as slow forward + backward (N = 262144).
+    # The scale is rebuilt from the candidates, as in matrix_to_quaternion_jvp (jax's rule, where
+    # reading it back from q as the cotangent does measured twice as slow forward + backward); this
+    # form, given q, is torch's forward-mode rule.
     inv = _m2q_scale(xp, *_m2q_select(xp, pivots, candidates))
     return _m2q_tangent(xp, pivots, inv, q, tangent, scalar_first)
 
