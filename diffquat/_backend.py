@@ -27,7 +27,9 @@ def matches(shape: tuple[int, ...], trailing: tuple[int, ...]) -> bool:
     if len(shape) < len(trailing):
         return False
     tail = shape[len(shape) - len(trailing) :]
-    return all(t in (-1, s) for s, t in zip(tail, trailing, strict=True))
+    # ``s == t``, not ``t in (-1, s)``: under torch.compile(dynamic=True) every size is symbolic, and
+    # Dynamo traced the ``in`` as False, so that every valid input raised the shape error.
+    return all(t == -1 or s == t for s, t in zip(tail, trailing, strict=True))
 
 
 def shape_tuple(shape: int | tuple[int, ...] | list[int]) -> tuple[int, ...]:

@@ -73,6 +73,22 @@ def test_torch_compile_fullgraph_forward_and_backward(
         close_derivatives(a, b, op, case)
 
 
+@only(case=lambda c: c.name == "random")
+@torch_only
+@gradients
+def test_torch_compile_dynamic_shapes(op: Op, backend: Backend, dtype: str, case: Case) -> None:
+    """Under ``torch.compile(dynamic=True)`` every size is symbolic, the trailing (3, 3) or (4,) too:
+    the argument checks must still pass (they once compared sizes in a way Dynamo could not resolve,
+    and raised the shape error for a valid input). Two batch sizes through one compiled graph."""
+    fn = op.gradient_function(backend.module)
+    xs, _ = setup(op, case)
+    torch._dynamo.reset()
+    compiled = torch.compile(fn, fullgraph=True, dynamic=True)
+    for rows in (len(xs[0]), len(xs[0]) - 1):
+        ts = [torch.tensor(x[:rows]) for x in xs]
+        close(compiled(*ts), fn(*ts))
+
+
 @transform_cases
 @torch_only
 @gradients
