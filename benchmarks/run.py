@@ -78,7 +78,9 @@ def _try(skipped: list[str], label: str, build: Callable[[], Method | list[Metho
     return built if isinstance(built, list) else [built]
 
 
-def build_ops(quick: bool) -> list[OpSpec]:
+def build_ops(quick: bool, dynamic: bool | None = None) -> list[OpSpec]:
+    """Every operation with its methods. ``dynamic`` is ``torch.compile``'s (None: a static graph
+    first, then a dynamic one once a second batch size comes)."""
     import jax
     import torch
 
@@ -92,7 +94,7 @@ def build_ops(quick: bool) -> list[OpSpec]:
     torch._dynamo.config.accumulated_recompile_limit = 1024
 
     def compiled(fn: Callable[[Any], Any]) -> Callable[[Any], Any]:
-        return torch.compile(fn, fullgraph=True)
+        return torch.compile(fn, fullgraph=True, dynamic=dynamic)
 
     ops: list[OpSpec] = []
     # (name, source, target, peer builders). Axis-angle rows appear once diffquat has those functions.
@@ -273,11 +275,18 @@ def _sync(out: Any) -> Any:
     elif isinstance(out, (tuple, list)):
         for o in out:
             _sync(o)
+    elif getattr(out, "is_cuda", False):  # a torch tensor on a GPU: wait for the kernels queued so far
+        import torch
+
+        torch.cuda.synchronize(out.device)
     return out
 
 
-def make_call(method: Method, x32: np.ndarray, backward: bool) -> Callable[[], Any] | None:
-    """A zero-argument callable running the method once (forward, or forward + backward)."""
+def make_call(
+    method: Method, x32: np.ndarray, backward: bool, device: str = "cpu"
+) -> Callable[[], Any] | None:
+    """A zero-argument callable running the method once (forward, or forward + backward). ``device``
+    places torch's input; jax's goes to jax's default device."""
     native = np.ascontiguousarray(method.prep(x32), dtype=np.float32)
     if method.family == "numpy":
         if backward:
@@ -286,7 +295,7 @@ def make_call(method: Method, x32: np.ndarray, backward: bool) -> Callable[[], A
     if method.family == "torch":
         import torch
 
-        xt = torch.from_numpy(native)
+        xt = torch.from_numpy(native).to(device)
         if not backward:
 
             def forward() -> Any:
@@ -308,13 +317,13 @@ def make_call(method: Method, x32: np.ndarray, backward: bool) -> Callable[[], A
     return lambda: _sync(vjp(xj, cot))
 
 
-def roofline_call(floats_per_rotation: int, n: int) -> Callable[[], Any]:
+def roofline_call(floats_per_rotation: int, n: int, device: str = "cpu") -> Callable[[], Any]:
     """A tensor copy moving ``floats_per_rotation`` float32 per rotation in total (half read, half
     written): the memory-bandwidth bound of an operation with that traffic."""
     import torch
 
     numel = max(1, (floats_per_rotation * n + 1) // 2)
-    src = torch.ones(numel, dtype=torch.float32)
+    src = torch.ones(numel, dtype=torch.float32, device=device)
     dst = torch.empty_like(src)
     return lambda: dst.copy_(src)
 
@@ -455,6 +464,8 @@ def _fmt_time(seconds: float) -> str:
     if not np.isfinite(seconds):
         return "—"
     us = seconds * 1e6
+    if us >= 1e6:
+        return f"{us / 1e6:.3g} s"
     return f"{us:.3g} µs" if us < 1000 else f"{us / 1000:.3g} ms"
 
 
@@ -512,7 +523,9 @@ def run(quick: bool, out_dir: Path, only: list[str] | None = None) -> dict[str, 
 def write(results: dict[str, Any], out_dir: Path) -> None:
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "results.json").write_text(json.dumps(results, indent=1))
-    (out_dir / "RESULTS.md").write_text(render(results))
+    from benchmarks import gpu
+
+    (out_dir / "RESULTS.md").write_text(render(results, gpu.load_gpu(out_dir)))
     plot(results, out_dir / "results.png")
 
 
@@ -573,7 +586,9 @@ def ratios(results: dict[str, Any]) -> list[str]:
     return lines
 
 
-def render(results: dict[str, Any]) -> str:
+def render(results: dict[str, Any], gpu_results: dict[str, Any] | None = None) -> str:
+    """``RESULTS.md``: the CPU run's tables, and the GPU run's section (``benchmarks.gpu``) where
+    given."""
     out = [
         "# Benchmark results",
         "",
@@ -613,7 +628,11 @@ def render(results: dict[str, Any]) -> str:
             if "runs" in results
             else []
         ),
-        "GPU figures (Triton kernels on CUDA): still to be measured; this run had no GPU.",
+        (
+            "GPU figures (Triton kernels on CUDA): still to be measured; this run had no GPU."
+            if gpu_results is None
+            else f"GPU figures: the last section ({gpu_results['machine']['device']}, a separate run)."
+        ),
         "",
         "## Machine and versions",
         "",
@@ -667,6 +686,10 @@ def render(results: dict[str, Any]) -> str:
         for label, acc in entry["accuracy"].items():
             finite = {None: "n/a (forward only)", True: "yes", False: "**no**"}[acc["grad_finite"]]
             out.append(f"| {label} | {acc['max_error']:.2e} | {finite} |")
+    if gpu_results is not None:
+        from benchmarks import gpu
+
+        out += ["", gpu.render(gpu_results).rstrip("\n")]
     return "\n".join(out) + "\n"
 
 

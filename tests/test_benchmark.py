@@ -56,3 +56,34 @@ def test_merge_lists_only_the_runs_whose_tables_it_shows(
     assert [run["ops"] for run in merged["runs"]] == [["m2q"], ["q2m"]]
     assert merged["seconds"] == 60.0
     assert merged["load"]["before"][0] == 0.5  # run "a" (load 3) no longer shows a table
+
+
+def test_gpu_benchmark_runs_and_renders_into_results(tmp_path: Path) -> None:
+    """The GPU half (``benchmarks.gpu``) on the CPU (``--device cpu``, a smoke run: this machine may
+    have no GPU): it times every method beside the copy, counts the operations of one diffquat call,
+    and its section joins RESULTS.md, which also names it in place of "still to be measured"."""
+    pytest.importorskip("matplotlib")
+    import json
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    cpu = json.loads((ROOT / "benchmarks" / "results.json").read_text())
+    (tmp_path / "results.json").write_text(json.dumps(cpu))
+    subprocess.run(
+        [sys.executable, "-m", "benchmarks.gpu", "--quick", "--device", "cpu", "--out", str(tmp_path)],
+        cwd=ROOT, env=env, check=True, capture_output=True, timeout=600,
+    )  # fmt: skip
+    gpu = json.loads((tmp_path / "gpu.json").read_text())
+    for name in ("quaternion_to_matrix", "matrix_to_quaternion"):
+        timings = gpu["ops"][name]["timings"]["forward + backward"]["64"]
+        assert {"diffquat torch eager", "diffquat jax.jit", "roofline (copy of the same bytes)"} <= set(
+            timings
+        )
+        assert all(t["median_s"] > 0 for t in timings.values())
+        for order in ("scalar-first", "scalar-last"):
+            assert gpu["ops"][name]["kernels"][order]["forward"], "no operation counted"
+    assert gpu["copy_bandwidth"] > 0
+    text = (tmp_path / "RESULTS.md").read_text()
+    assert "## GPU: cpu (no GPU: a smoke run)" in text
+    assert "### Kernels per diffquat torch eager call" in text
+    assert "still to be measured" not in text
+    assert (tmp_path / "gpu.png").stat().st_size > 0
