@@ -260,29 +260,7 @@ def render(results: dict[str, Any]) -> str:
 
 
 def plot(results: dict[str, Any], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    ops = list(results["ops"])
-    sizes = results["sizes"]
-    fig, axes = plt.subplots(len(ops), 2, figsize=(12, 4.2 * len(ops)), squeeze=False)
-    for row, name in enumerate(ops):
-        for col, (mode, per_n) in enumerate(results["ops"][name]["timings"].items()):
-            ax = axes[row][col]
-            for label in per_n[str(sizes[0])]:
-                ns = [per_n[str(n)][label]["median_s"] * 1e9 / n for n in sizes]
-                style = "k--" if label == ROOFLINE else ("-o" if "diffquat" in label else "-.x")
-                ax.loglog(sizes, ns, style, label=label, linewidth=2 if "diffquat" in label else 1)
-            ax.set_title(f"{name}, {mode} ({results['machine']['device']})")
-            ax.set_xlabel("N (rotations per call)")
-            ax.set_ylabel("ns per rotation")
-            ax.grid(True, which="both", alpha=0.3)
-            ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    run.plot(results, path, f" ({results['machine']['device']})")
 
 
 def main(argv: list[str] | None = None) -> None:

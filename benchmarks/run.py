@@ -693,7 +693,9 @@ def render(results: dict[str, Any], gpu_results: dict[str, Any] | None = None) -
     return "\n".join(out) + "\n"
 
 
-def plot(results: dict[str, Any], path: Path) -> None:
+def plot(results: dict[str, Any], path: Path, where: str = "") -> None:
+    """ns per rotation against N, log-log, one line per method; one panel per operation and mode
+    (``where`` is added to each panel's title)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -709,7 +711,7 @@ def plot(results: dict[str, Any], path: Path) -> None:
                 ns = [per_n[str(n)][label]["median_s"] * 1e9 / n for n in sizes]
                 style = "k--" if label.startswith("roofline") else ("-o" if "diffquat" in label else "-.x")
                 ax.loglog(sizes, ns, style, label=label, linewidth=2 if "diffquat" in label else 1)
-            ax.set_title(f"{name}, {mode}")
+            ax.set_title(f"{name}, {mode}{where}")
             ax.set_xlabel("N (rotations per call)")
             ax.set_ylabel("ns per rotation")
             ax.grid(True, which="both", alpha=0.3)
