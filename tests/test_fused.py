@@ -341,3 +341,26 @@ def test_compiled_public_function_traces_to_the_core_formula(scalar_first: bool,
         # 16 bits: the upcast, the formula, the cast back, then the re-standardisation if canonical
         assert ours[0] == "to" and ours[1 : len(theirs) + 1] == theirs and ours[len(theirs) + 1] == "to"
         assert (len(ours) > len(theirs) + 2) == (core.__name__ in _core.CANONICAL)
+
+
+@pytest.mark.parametrize("scalar_first", [True, False])
+def test_compiled_cuda_namespace_stacks_rows_with_the_same_values(scalar_first: bool) -> None:
+    """Under torch.compile, CUDA tensors take the core formula over ``_fused._CompiledCuda``, which
+    stacks the matrix by rows of three: inductor lowers a concatenation of more than eight inputs as
+    one strided copy per input, and one of at most eight as a single kernel. The values are those of
+    the single stack, bit for bit, and the traced graph holds no stack of more than eight."""
+    q = torch.randn(50, 4, dtype=torch.float64)
+    rows = _fused.compiled_quaternion_to_matrix(torch, q, scalar_first=scalar_first)
+    assert torch.equal(rows, _core.quaternion_to_matrix(torch, q, scalar_first=scalar_first))
+    graphs: list[torch.fx.GraphModule] = []
+
+    def capture(gm: torch.fx.GraphModule, example_inputs: object) -> object:
+        graphs.append(gm)
+        return gm.forward
+
+    torch._dynamo.reset()
+    fn = lambda t: _fused.compiled_quaternion_to_matrix(torch, t, scalar_first=scalar_first)  # noqa: E731
+    torch.compile(fn, backend=capture, fullgraph=True, dynamic=False)(q)  # type: ignore[call-overload]
+    (graph,) = graphs
+    stacks = [len(node.args[0]) for node in graph.graph.nodes if node.target is torch.stack]
+    assert stacks == [3, 3, 3, 3]
