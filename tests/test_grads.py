@@ -267,3 +267,34 @@ def test_gradient_is_finite_in_every_dtype(op: Op, backend: Backend, dtype: str)
     finite = np.all([np.all(np.isfinite(g.reshape(len(g), -1)), axis=-1) for g in grads], axis=0)
     bad = {cases[i].name for i in np.searchsorted(np.cumsum(sizes), np.flatnonzero(~finite), side="right")}
     assert not bad, f"non-finite gradients in cases {sorted(bad)}"
+
+
+@pytest.mark.parametrize("scalar_first", [True, False], ids=["wxyz", "xyzw"])
+def test_jax_quaternion_to_matrix_gpu_form_differentiates_as_the_core(scalar_first: bool) -> None:
+    """Off the CPU, jax's quaternion_to_matrix evaluates the gathered form, whose custom rule is the
+    core formula's own ``jvp`` (the gathered form's reverse mode is a scatter-add, 15x slower on a
+    GPU). That branch is never lowered on this CPU machine, so it is called here directly: its values,
+    first and second derivatives equal the core's, and ``check_grads`` passes in both modes."""
+    from diffquat import _core
+    from diffquat.jax import _Q2M_GATHERED
+    from diffquat.jax._namespace import XP
+
+    gathered = lambda q: _Q2M_GATHERED[scalar_first](XP, q)  # noqa: E731
+    core = lambda q: _core.quaternion_to_matrix(XP, q, scalar_first=scalar_first)  # noqa: E731
+    q = jnp.asarray(np.random.default_rng(3).normal(size=(16, 4)))
+    t = jnp.asarray(np.random.default_rng(4).normal(size=(16, 4)))
+    w = jnp.asarray(np.random.default_rng(5).normal(size=(16, 3, 3)))
+    # compiled, XLA may contract or reorder either form's last roundings: equal to float64 rounding
+    np.testing.assert_allclose(
+        np.asarray(jax.jit(gathered)(q)), np.asarray(jax.jit(core)(q)), rtol=0, atol=2e-15
+    )
+    derivatives = (
+        lambda f: jax.jvp(f, (q,), (t,))[1],
+        lambda f: jax.vjp(f, q)[1](w)[0],
+        lambda f: jax.jvp(jax.grad(lambda x: (f(x) * w).sum()), (q,), (t,))[1],  # second order
+    )
+    for derivative in derivatives:
+        np.testing.assert_allclose(
+            np.asarray(derivative(gathered)), np.asarray(derivative(core)), rtol=1e-12, atol=1e-12
+        )
+    check_grads(gathered, (q,), order=2, modes=("fwd", "rev"))

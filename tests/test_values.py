@@ -189,3 +189,21 @@ def test_matrix_to_quaternion_evaluation_orders_agree(backend: Backend, case: Ca
             for other in (b, backend.to_numpy(c)):
                 np.testing.assert_allclose(other, a, rtol=0, atol=1e-15)
                 np.testing.assert_array_equal(np.sign(other), np.sign(a))
+
+
+def test_quaternion_to_matrix_gathered_form_is_the_same_map(backend: Backend, case: Case) -> None:
+    """``_core.quaternion_to_matrix_gathered``, the form the jax backend compiles for GPUs (entries
+    read by constant indices), gives the core formula's values bit for bit on every namespace, every
+    case (the zero quaternion and the extreme norms included) and both storage orders: a factor of 2
+    is exact, so ``2 (u_a u_b + ...)`` rounds as ``(2 u_a) u_b + ...``."""
+    import jax.numpy as jnp
+    import torch
+
+    from diffquat import _core
+
+    xp = {"numpy": np, "torch": torch, "jax": jnp}[backend.name]
+    q = backend.array(case.quaternions("float64"), "float64")
+    for scalar_first in (True, False):
+        a = backend.to_numpy(_core.quaternion_to_matrix(xp, q, scalar_first=scalar_first))
+        b = backend.to_numpy(_core.quaternion_to_matrix_gathered(xp, q, scalar_first=scalar_first))
+        np.testing.assert_array_equal(b, a)

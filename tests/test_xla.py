@@ -58,3 +58,28 @@ def test_quaternion_to_matrix_cotangent_is_one_stack(scalar_first: bool) -> None
     hlo = jax.jit(jax.grad(loss)).lower(jnp.ones((1024, 4), jnp.float32)).compile().as_text()
     assert hlo is not None
     assert not re.findall(r" pad\(", hlo)
+
+
+@pytest.mark.parametrize("scalar_first", [True, False], ids=["wxyz", "xyzw"])
+def test_quaternion_to_matrix_compiles_to_the_stack_on_the_cpu(scalar_first: bool) -> None:
+    """``quaternion_to_matrix`` chooses its form by platform (``lax.platform_dependent``): on the CPU
+    the compiled programs, forward, reverse and forward mode, are those of the core's stack of nine,
+    instruction for instruction (the gathered form, for GPUs, is not even lowered)."""
+    from diffquat import _core
+    from diffquat.jax._namespace import XP
+
+    def program(fn: Callable[..., Any], *args: Any) -> list[str]:
+        text = jax.jit(fn).lower(*args).compile().as_text()
+        lines = [line for line in text.splitlines() if " = " in line]
+        # instruction names carry numbers, and metadata the source lines; neither is the program
+        return [re.sub(r"\.\d+|, metadata=\{[^}]*\}|stack_frame_id=\d+", "", line) for line in lines]
+
+    q, g = jnp.ones((1024, 4), jnp.float32), jnp.ones((1024, 3, 3), jnp.float32)
+    ours = lambda x: dq.quaternion_to_matrix(x, scalar_first=scalar_first)  # noqa: E731
+    core = lambda x: _core.quaternion_to_matrix(XP, x, scalar_first=scalar_first)  # noqa: E731
+    for wrap, args in (
+        (lambda f: f, (q,)),
+        (lambda f: lambda x, c: jax.vjp(f, x)[1](c), (q, g)),
+        (lambda f: lambda x, t: jax.jvp(f, (x,), (t,)), (q, q)),
+    ):
+        assert program(wrap(ours), *args) == program(wrap(core), *args)

@@ -4,6 +4,7 @@ and ``jacfwd``/``jacrev``."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -61,9 +62,42 @@ _B = Backend(
 )
 
 
+def _q2m_gathered(scalar_first: bool) -> Callable[[Any, Array], Array]:
+    """:func:`diffquat._core.quaternion_to_matrix_gathered` in one order, differentiated as the core
+    formula (a ``custom_jvp`` whose rule is the stack of nine's own ``jvp``, the same values): the
+    gathered form's reverse mode is a scatter-add, 15x slower on an H100 than the stack's."""
+
+    def forward(xp: Any, q: Array) -> Array:
+        return _core.quaternion_to_matrix_gathered(xp, q, scalar_first=scalar_first)
+
+    def jvp(xp: Any, q: Array, dq: Array) -> tuple[Array, Array]:
+        return jax.jvp(lambda x: _core.quaternion_to_matrix(xp, x, scalar_first=scalar_first), (q,), (dq,))
+
+    return custom_jvp_rule(forward, jvp)
+
+
+_Q2M_GATHERED = {order: _q2m_gathered(order) for order in (True, False)}
+
+
+def _quaternion_to_matrix(xp: Any, q: Array, *, scalar_first: bool = True) -> Array:
+    """The core formula in the form that the platform compiles better, chosen when ``jit`` lowers for
+    a platform (the other is not lowered): the stack of nine entries on the CPU, the gathered entries
+    elsewhere (the same values). On an H100 the gathered forward is 1.2x faster, as fast as jaxlie's;
+    derivatives are the stack's on every platform."""
+    gathered = _Q2M_GATHERED[bool(scalar_first)]
+    return jax.lax.platform_dependent(
+        q,
+        cpu=lambda x: _core.quaternion_to_matrix(xp, x, scalar_first=scalar_first),
+        default=lambda x: gathered(xp, x),
+    )
+
+
+_quaternion_to_matrix.__name__ = "quaternion_to_matrix"  # the backend validates by the core's name
+
+
 @documented(_core.quaternion_to_matrix)
 def quaternion_to_matrix(q: ArrayLike, *, scalar_first: bool = True) -> Array:
-    return _B(_core.quaternion_to_matrix, q, scalar_first=scalar_first)
+    return _B(_quaternion_to_matrix, q, scalar_first=scalar_first)
 
 
 # With its derivative written out (only the picked candidate is differentiated): XLA's own derivative
