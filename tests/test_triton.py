@@ -100,6 +100,16 @@ torch.testing.assert_close(
 )
 assert torch.autograd.gradcheck(fn, m)
 assert torch.autograd.gradgradcheck(fn, m)
+# int64 element offsets (taken from ~238 million rotations on): the same results on a small batch
+q, cot9 = torch.randn(300, 4), torch.randn(300, 3, 3)
+m, cot4 = _triton.q2m_forward(q), torch.randn(300, 4)
+narrow = [_triton.q2m_forward(q), _triton.q2m_backward(q, cot9), _triton.m2q_forward(m)]
+narrow.append(_triton.m2q_backward(m, narrow[2], cot4))
+_triton.WIDE_FROM = 0
+wide = [_triton.q2m_forward(q), _triton.q2m_backward(q, cot9), _triton.m2q_forward(m)]
+wide.append(_triton.m2q_backward(m, wide[2], cot4))
+for a, b in zip(narrow, wide):
+    assert torch.equal(a, b)
 print("ok")
 """
 
@@ -119,6 +129,7 @@ def test_triton_kernels_under_the_interpreter() -> None:
 
 
 COMPILE = r"""
+import re
 import triton
 from triton.backends.compiler import GPUTarget
 from triton.compiler import ASTSource
@@ -133,9 +144,10 @@ KERNELS = {
 }
 for kernel, (pointers, has_tiny) in KERNELS.items():
     for dtype, tiny in (("fp32", F32_TINY), ("fp64", F64_TINY)):
-        for first in (True, False):
-            signature = {p: "*" + dtype for p in pointers} | {"n": "i32"}
-            constexprs = {"FIRST": first, "block": K.BLOCK} | ({"TINY": tiny} if has_tiny else {})
+        for first, wide in ((True, False), (False, False), (True, True)):
+            signature = {p: "*" + dtype for p in pointers} | {"n": "i64" if wide else "i32"}
+            constexprs = {"FIRST": first, "WIDE": wide, "block": K.BLOCK}
+            constexprs |= {"TINY": tiny} if has_tiny else {}
             signature |= dict.fromkeys(constexprs, "constexpr")
             # as the launcher specialises them for torch's allocations: 16-byte aligned pointers
             attrs = {(i,): [["tt.divisibility", 16]] for i in range(len(pointers))}
@@ -147,7 +159,11 @@ for kernel, (pointers, has_tiny) in KERNELS.items():
             if dtype == "fp32" and kernel in (K._q2m_backward_kernel, K._m2q_forward_kernel):
                 # the quaternion tile is written 16 bytes per store, not 4 strided ones
                 assert "st.global.v4.b32" in ptx, kernel.__name__
-            print(kernel.__name__, dtype, first, len(compiled.asm["cubin"]))
+            # the program's first row: widened to 64 bits straight from the block index, or not
+            (block_id,) = re.findall(r"mov\.u32\s+(%r\d+), %ctaid\.x;", ptx)
+            widened = re.search(rf"(mul\.wide\.[su]32|cvt\.[su]64\.[su]32)\s+%rd\d+, {block_id}\b", ptx)
+            assert bool(widened) == wide, (kernel.__name__, wide)
+            print(kernel.__name__, dtype, first, wide, len(compiled.asm["cubin"]))
 print("ok")
 """
 

@@ -40,6 +40,15 @@ NUM_WARPS = 8
 
 
 @triton.jit
+def _rows(block: tl.constexpr, WIDE: tl.constexpr):
+    """This program's rows, in int64 where element offsets (9 per row) would pass 2^31 in int32."""
+    first = tl.program_id(0)
+    if WIDE:
+        first = first.to(tl.int64)
+    return first * block + tl.arange(0, block)
+
+
+@triton.jit
 def _load_quaternion(ptr, rows, n, FIRST: tl.constexpr):
     """Components (w, x, y, z) of rows ``rows`` of an (n, 4) array in either order; 0 past ``n``."""
     t = tl.load(ptr + rows[:, None] * 4 + tl.arange(0, 4)[None, :], mask=rows[:, None] < n, other=0.0)
@@ -111,8 +120,10 @@ def _scale(w, x, y, z, TINY: tl.constexpr):
 
 
 @triton.jit
-def _q2m_forward_kernel(q_ptr, out_ptr, n, TINY: tl.constexpr, FIRST: tl.constexpr, block: tl.constexpr):
-    rows = tl.program_id(0) * block + tl.arange(0, block)
+def _q2m_forward_kernel(
+    q_ptr, out_ptr, n, TINY: tl.constexpr, FIRST: tl.constexpr, WIDE: tl.constexpr, block: tl.constexpr
+):
+    rows = _rows(block, WIDE)
     w, x, y, z = _load_quaternion(q_ptr, rows, n, FIRST)
     s = _scale(w, x, y, z, TINY)
     sx, sy, sz = s * x, s * y, s * z
@@ -129,9 +140,9 @@ def _q2m_forward_kernel(q_ptr, out_ptr, n, TINY: tl.constexpr, FIRST: tl.constex
 
 @triton.jit
 def _q2m_backward_kernel(
-    q_ptr, g_ptr, out_ptr, n, TINY: tl.constexpr, FIRST: tl.constexpr, block: tl.constexpr
+    q_ptr, g_ptr, out_ptr, n, TINY: tl.constexpr, FIRST: tl.constexpr, WIDE: tl.constexpr, block: tl.constexpr
 ):
-    rows = tl.program_id(0) * block + tl.arange(0, block)
+    rows = _rows(block, WIDE)
     w, x, y, z = _load_quaternion(q_ptr, rows, n, FIRST)
     g00, g01, g02, g10, g11, g12, g20, g21, g22 = _load_matrix(g_ptr, rows, n)
     s = _scale(w, x, y, z, TINY)
@@ -165,8 +176,8 @@ def _pick(use01, use0, use2, a, b, c, d):
 
 
 @triton.jit
-def _m2q_forward_kernel(m_ptr, out_ptr, n, FIRST: tl.constexpr, block: tl.constexpr):
-    rows = tl.program_id(0) * block + tl.arange(0, block)
+def _m2q_forward_kernel(m_ptr, out_ptr, n, FIRST: tl.constexpr, WIDE: tl.constexpr, block: tl.constexpr):
+    rows = _rows(block, WIDE)
     m00, m01, m02, m10, m11, m12, m20, m21, m22 = _load_matrix(m_ptr, rows, n)
     t0, t1, t2, t3, use01, use0, use2, _ = _pivots(m00, m11, m22)
     wx, wy, wz = m21 - m12, m02 - m20, m10 - m01
@@ -182,8 +193,10 @@ def _m2q_forward_kernel(m_ptr, out_ptr, n, FIRST: tl.constexpr, block: tl.conste
 
 
 @triton.jit
-def _m2q_backward_kernel(m_ptr, q_ptr, g_ptr, out_ptr, n, FIRST: tl.constexpr, block: tl.constexpr):
-    rows = tl.program_id(0) * block + tl.arange(0, block)
+def _m2q_backward_kernel(
+    m_ptr, q_ptr, g_ptr, out_ptr, n, FIRST: tl.constexpr, WIDE: tl.constexpr, block: tl.constexpr
+):
+    rows = _rows(block, WIDE)
     mask = rows < n
     # the choice needs only the diagonal (masked lanes see the identity); three strided loads: the
     # whole matrix is read in the same sectors anyway (measured 96% of the copy bandwidth)
@@ -219,6 +232,15 @@ def _grid(n: int) -> tuple[int]:
     return (triton.cdiv(n, BLOCK),)
 
 
+# Batches from this many rotations index their elements in int64: 9 n element offsets reach 2^31
+# there (about 238 million matrices, 8.6 GB in float32), where int32 offsets wrap to other memory.
+WIDE_FROM = 2**31 // 9
+
+
+def _wide(n: int) -> bool:
+    return n >= WIDE_FROM
+
+
 def _tiny(dtype: torch.dtype) -> float:
     """The smallest normal number of ``dtype``, passed as a constexpr: a float kernel argument is
     float32, where float64's (2^-1022) would be 0, and the zero quaternion would give NaN."""
@@ -231,7 +253,7 @@ def q2m_forward(q: Tensor, scalar_first: bool = True) -> Tensor:
     out = torch.empty((flat.shape[0], 9), dtype=q.dtype, device=q.device)
     n = flat.shape[0]
     _q2m_forward_kernel[_grid(n)](
-        flat, out, n, TINY=_tiny(q.dtype), FIRST=scalar_first, block=BLOCK, num_warps=NUM_WARPS
+        flat, out, n, TINY=_tiny(q.dtype), FIRST=scalar_first, WIDE=_wide(n), block=BLOCK, num_warps=NUM_WARPS
     )
     return out.reshape(*q.shape[:-1], 3, 3)
 
@@ -243,7 +265,15 @@ def q2m_backward(q: Tensor, grad: Tensor, scalar_first: bool = True) -> Tensor:
     out = torch.empty_like(flat)
     n = flat.shape[0]
     _q2m_backward_kernel[_grid(n)](
-        flat, g, out, n, TINY=_tiny(q.dtype), FIRST=scalar_first, block=BLOCK, num_warps=NUM_WARPS
+        flat,
+        g,
+        out,
+        n,
+        TINY=_tiny(q.dtype),
+        FIRST=scalar_first,
+        WIDE=_wide(n),
+        block=BLOCK,
+        num_warps=NUM_WARPS,
     )
     return out.reshape(q.shape)
 
@@ -287,7 +317,9 @@ def m2q_forward(matrix: Tensor, scalar_first: bool = True) -> Tensor:
     flat = matrix.reshape(-1, 9).contiguous()
     out = torch.empty((flat.shape[0], 4), dtype=matrix.dtype, device=matrix.device)
     n = flat.shape[0]
-    _m2q_forward_kernel[_grid(n)](flat, out, n, FIRST=scalar_first, block=BLOCK, num_warps=NUM_WARPS)
+    _m2q_forward_kernel[_grid(n)](
+        flat, out, n, FIRST=scalar_first, WIDE=_wide(n), block=BLOCK, num_warps=NUM_WARPS
+    )
     return out.reshape(*matrix.shape[:-2], 4)
 
 
@@ -298,7 +330,7 @@ def m2q_backward(matrix: Tensor, q: Tensor, grad: Tensor, scalar_first: bool = T
     n = flat.shape[0]
     q_flat, g_flat = q.reshape(-1, 4).contiguous(), grad.reshape(-1, 4).contiguous()
     _m2q_backward_kernel[_grid(n)](
-        flat, q_flat, g_flat, out, n, FIRST=scalar_first, block=BLOCK, num_warps=NUM_WARPS
+        flat, q_flat, g_flat, out, n, FIRST=scalar_first, WIDE=_wide(n), block=BLOCK, num_warps=NUM_WARPS
     )
     return out.reshape(matrix.shape)
 
