@@ -115,14 +115,6 @@ def _plain(grad: Tensor, like: Tensor) -> bool:
     return usable(grad) and grad.dtype == like.dtype
 
 
-def _to_first(q: Tensor, first: bool) -> Tensor:
-    return q if first else q[..., _fused.TO_FIRST]
-
-
-def _from_first(q: Tensor, first: bool) -> Tensor:
-    return q if first else q[..., _fused.TO_LAST]
-
-
 # Old-style Functions (``forward(ctx, ...)``): ``Function.apply`` binds the arguments of a
 # ``setup_context`` Function through ``inspect.signature`` on every call (see _fused.py). Used in
 # eager mode only; torch.func transforms take _fused's Functions, which have vmap rules.
@@ -141,13 +133,15 @@ class QuaternionToMatrixKernel(torch.autograd.Function):
         (q,) = ctx.saved_tensors
         # a double backward records this (or an unusual cotangent): the differentiable formula
         if torch.is_grad_enabled() or not _plain(grad, q):
-            return _from_first(_fused.q2m_backward(_to_first(q, ctx.first), grad), ctx.first), None
+            return _fused.from_first(
+                _fused.q2m_backward(_fused.to_first(q, ctx.first), grad), ctx.first
+            ), None
         return q2m_backward(q, grad, ctx.first), None
 
     @staticmethod
     def jvp(ctx: Any, tangent: Tensor, _: None) -> Tensor:
         (q,) = ctx.saved_tensors
-        return _fused.q2m_jvp(_to_first(q, ctx.first), _to_first(tangent, ctx.first))
+        return _fused.q2m_jvp(_fused.to_first(q, ctx.first), _fused.to_first(tangent, ctx.first))
 
 
 class MatrixToQuaternionKernel(torch.autograd.Function):
@@ -164,13 +158,13 @@ class MatrixToQuaternionKernel(torch.autograd.Function):
         matrix, q = ctx.saved_tensors
         # double backward (or an unusual cotangent): the quaternion as a function of the matrix
         if torch.is_grad_enabled() or not _plain(grad, matrix):
-            return _fused.m2q_backward(matrix, _to_first(grad, ctx.first), *_fused.select(matrix)), None
+            return _fused.m2q_backward(matrix, _fused.to_first(grad, ctx.first), *_fused.select(matrix)), None
         return m2q_backward(matrix, q, grad, ctx.first), None
 
     @staticmethod
     def jvp(ctx: Any, tangent: Tensor, _: None) -> Tensor:
         (matrix,) = ctx.saved_tensors
-        return _from_first(_fused.m2q_jvp(matrix, tangent), ctx.first)
+        return _fused.from_first(_fused.m2q_jvp(matrix, tangent), ctx.first)
 
 
 def quaternion_to_matrix(xp: Any, q: Tensor, *, scalar_first: bool = True) -> Tensor:

@@ -446,12 +446,22 @@ TO_FIRST = [3, 0, 1, 2]
 TO_LAST = [1, 2, 3, 0]
 
 
+def to_first(q: Tensor, scalar_first: bool) -> Tensor:
+    """``q`` stored in ``scalar_first`` order, as scalar-first."""
+    return q if scalar_first else q[..., TO_FIRST]
+
+
+def from_first(q: Tensor, scalar_first: bool) -> Tensor:
+    """A scalar-first ``q`` in ``scalar_first`` storage order (the inverse of :func:`to_first`)."""
+    return q if scalar_first else q[..., TO_LAST]
+
+
 def quaternion_to_matrix(xp: Any, q: Tensor, *, scalar_first: bool = True) -> Tensor:
     """Fused :func:`diffquat._core.quaternion_to_matrix` (same name: the backend validates by it)."""
     fn = (
         QuaternionToMatrixTransformable if torch._C._are_functorch_transforms_active() else QuaternionToMatrix
     )
-    r: Tensor = fn.apply(q if scalar_first else q[..., TO_FIRST])  # type: ignore[no-untyped-call]
+    r: Tensor = fn.apply(to_first(q, scalar_first))  # type: ignore[no-untyped-call]
     return r
 
 
@@ -461,12 +471,12 @@ def matrix_to_quaternion(xp: Any, matrix: Tensor, *, scalar_first: bool = True) 
         MatrixToQuaternionTransformable if torch._C._are_functorch_transforms_active() else MatrixToQuaternion
     )
     q: Tensor = fn.apply(matrix)  # type: ignore[no-untyped-call]
-    return q if scalar_first else q[..., TO_LAST]
+    return from_first(q, scalar_first)
 
 
 def quaternion_to_matrix_columns(xp: Any, q: Tensor, *, scalar_first: bool = True) -> Tensor:
     """:class:`QuaternionToMatrixColumns` in either storage order."""
-    r: Tensor = QuaternionToMatrixColumns.apply(q if scalar_first else q[..., TO_FIRST])  # type: ignore[no-untyped-call]
+    r: Tensor = QuaternionToMatrixColumns.apply(to_first(q, scalar_first))  # type: ignore[no-untyped-call]
     return r
 
 
@@ -485,7 +495,7 @@ def quaternion_to_matrix_blocks(xp: Any, q: Tensor, *, scalar_first: bool = True
 def matrix_to_quaternion_columns(xp: Any, matrix: Tensor, *, scalar_first: bool = True) -> Tensor:
     """:class:`MatrixToQuaternionColumns` in either storage order."""
     q: Tensor = MatrixToQuaternionColumns.apply(matrix)  # type: ignore[no-untyped-call]
-    return q if scalar_first else q[..., TO_LAST]
+    return from_first(q, scalar_first)
 
 
 # The backend validates arguments by the core function's name.

@@ -278,14 +278,6 @@ def q2m_backward(q: Tensor, grad: Tensor, scalar_first: bool = True) -> Tensor:
     return out.reshape(q.shape)
 
 
-def _first(q: Tensor, scalar_first: bool) -> Tensor:
-    return q if scalar_first else q[..., _fused.TO_FIRST]
-
-
-def _in_order(q_first: Tensor, scalar_first: bool) -> Tensor:
-    return q_first if scalar_first else q_first[..., _fused.TO_LAST]
-
-
 class QuaternionToMatrix(torch.autograd.Function):
     @staticmethod
     def forward(q: Tensor, scalar_first: bool) -> Tensor:
@@ -302,7 +294,7 @@ class QuaternionToMatrix(torch.autograd.Function):
         first = ctx.scalar_first
         if torch.is_grad_enabled() and (q.requires_grad or grad.requires_grad):
             # recorded for a double backward
-            return _in_order(_fused.q2m_backward(_first(q, first), grad), first), None
+            return _fused.from_first(_fused.q2m_backward(_fused.to_first(q, first), grad), first), None
         return q2m_backward(q, grad, first), None
 
 
@@ -352,7 +344,7 @@ class MatrixToQuaternion(torch.autograd.Function):
         if torch.is_grad_enabled() and (matrix.requires_grad or grad.requires_grad):
             # recorded for a double backward
             cotangent = _core.matrix_to_quaternion_cotangent(
-                torch, matrix, _first(q, first), _first(grad, first)
+                torch, matrix, _fused.to_first(q, first), _fused.to_first(grad, first)
             )
             return cotangent, None
         return m2q_backward(matrix, q, grad, first), None
