@@ -271,12 +271,11 @@ def _m2q_candidates(matrix: Any, one: Any) -> tuple[tuple[Any, ...], list[tuple[
     return (t0, t1, t2, t3), candidates
 
 
-def _m2q_choice(xp: Any, pivots: tuple[Any, ...]) -> tuple[Any, Any, Any, Any]:
-    """The largest pivot as a two-level choice (between pivots (0, 1) and (2, 3), then within the
-    pair; ties go to the lower index), and its value."""
+def _m2q_choice(xp: Any, pivots: tuple[Any, ...]) -> tuple[Any, Any, Any]:
+    """The largest pivot as a two-level choice: between pivots (0, 1) and (2, 3), then within the
+    pair; ties go to the lower index."""
     t0, t1, t2, t3 = pivots
-    high01, high23 = xp.maximum(t0, t1), xp.maximum(t2, t3)
-    return high01 >= high23, t0 >= t1, t2 >= t3, xp.maximum(high01, high23)
+    return xp.maximum(t0, t1) >= xp.maximum(t2, t3), t0 >= t1, t2 >= t3
 
 
 def _m2q_select(
@@ -284,7 +283,7 @@ def _m2q_select(
 ) -> tuple[Any, Any, Any, Any]:
     """Components (w, x, y, z) of the candidate of the largest pivot. Every candidate is finite, so
     the selection is safe for reverse mode, and it happens before the one division."""
-    use01, use0, use2, _ = _m2q_choice(xp, pivots)
+    use01, use0, use2 = _m2q_choice(xp, pivots)
 
     def pick(i: int) -> Any:
         return _m2q_pick(xp, use01, use0, use2, *(candidate[i] for candidate in candidates))
@@ -293,7 +292,7 @@ def _m2q_select(
 
 
 def _m2q_pick(xp: Any, use01: Any, use0: Any, use2: Any, v0: Any, v1: Any, v2: Any, v3: Any) -> Any:
-    """``v_k`` for the pivot ``k`` chosen by :func:`_m2q_choice` (whose first three results these are)."""
+    """``v_k`` for the pivot ``k`` chosen by :func:`_m2q_choice` (whose results these are)."""
     return xp.where(use01, xp.where(use0, v0, v1), xp.where(use2, v2, v3))
 
 
@@ -315,7 +314,7 @@ def matrix_to_quaternion_stacked(xp: Any, matrix: Any, *, scalar_first: bool = T
     concatenation, twice as slow (benchmarks/). Evaluated eagerly it costs more passes, so the eager
     backends keep the core formula."""
     pivots, candidates = _m2q_candidates(matrix, 1.0)
-    use01, use0, use2, _ = _m2q_choice(xp, pivots)
+    use01, use0, use2 = _m2q_choice(xp, pivots)
     (t0, wx, wy, wz), (_, t1, xy, xz), (_, _, t2, yz), (_, _, _, t3) = candidates
     sq_wx, sq_wy, sq_wz, sq_xy, sq_xz, sq_yz = wx * wx, wy * wy, wz * wz, xy * xy, xz * xz, yz * yz
     norms = (
@@ -340,7 +339,7 @@ def _m2q_pick_candidate(
     xp: Any, pivots: tuple[Any, ...], candidates: list[tuple[Any, Any, Any, Any]], scalar_first: bool
 ) -> Any:
     """The candidate of the largest pivot as one ``(..., 4)`` array (whole candidates selected)."""
-    use01, use0, use2, _ = _m2q_choice(xp, pivots)
+    use01, use0, use2 = _m2q_choice(xp, pivots)
     stacked = (join_quaternion(xp, *candidate, scalar_first) for candidate in candidates)
     return _m2q_pick(xp, use01[..., None], use0[..., None], use2[..., None], *stacked)
 
@@ -349,10 +348,18 @@ def _m2q_recover_scale(xp: Any, matrix: Any, q: Any) -> tuple[Any, Any, Any, Any
     """The choice of :func:`_m2q_choice` and the scale ``+-1 / |c|`` of :func:`_m2q_scale`, read back
     from the result ``q`` (scalar first) instead of rebuilding and renormalising the candidates:
     component k of candidate k is the pivot ``t_k`` itself, so ``q_k = t_k (+-1 / |c|)``. The pivot is
-    selected before the division, and the largest pivot is at least 1."""
-    use01, use0, use2, largest = _m2q_choice(xp, _m2q_pivots(matrix, 1.0))
+    selected before the division, and the largest pivot is at least 1. It is the chosen pivot, picked
+    as the components are, not the maximum of the four: the derivative of a maximum splits between
+    tied pivots (half-turns about a diagonal tie three), which made the second derivative wrong there."""
+    pivots = _m2q_pivots(matrix, 1.0)
+    use01, use0, use2 = _m2q_choice(xp, pivots)
     w, x, y, z = split_quaternion(q, True)
-    return use01, use0, use2, _m2q_pick(xp, use01, use0, use2, w, x, y, z) / largest
+    return (
+        use01,
+        use0,
+        use2,
+        _m2q_pick(xp, use01, use0, use2, w, x, y, z) / _m2q_pick(xp, use01, use0, use2, *pivots),
+    )
 
 
 class _Unstacked:

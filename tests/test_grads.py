@@ -13,6 +13,7 @@ import pytest
 import torch
 from cases import (
     CASES,
+    CASES_BY_NAME,
     Case,
     Op,
     edge_cases,
@@ -222,19 +223,65 @@ def test_matrix_to_quaternion_scalar_last_gradient(name: str) -> None:
 
 @pytest.mark.parametrize("scalar_first", [True, False], ids=["wxyz", "xyzw"])
 def test_jax_matrix_to_quaternion_value_under_differentiation(scalar_first: bool) -> None:
-    """Under differentiation jax takes matrix_to_quaternion's value from its forward-mode rule (the
-    core formula's scale, shared with the tangent), not from the plain forward (the stacked order):
-    the two agree to the last bits of float32 and in sign, half-turns included."""
+    """Off the CPU (and where the C extension is not built), jax's matrix_to_quaternion is a formula
+    whose value under differentiation comes from its forward-mode rule (the core formula's scale,
+    shared with the tangent), not from the plain forward (the stacked order): the two agree to the
+    last bits of float32 and in sign, half-turns included. Called directly, as no CPU lowers it."""
+    from diffquat.jax import _M2Q
+    from diffquat.jax._namespace import XP
+
     quaternions = np.concatenate([c.quaternions("float64").reshape(-1, 4) for c in CASES if c.name != "zero"])
     matrices = jnp.asarray(oracle_quaternion_to_matrix(quaternions), jnp.float32)
 
     def fn(m: Any) -> Any:
-        return BACKENDS["jax"].module.matrix_to_quaternion(m, scalar_first=scalar_first)
+        return _M2Q[scalar_first](XP, m)
 
     plain = np.asarray(jax.jit(fn)(matrices))
     differentiated = np.asarray(jax.jit(lambda m: jax.vjp(fn, m)[0])(matrices))
     np.testing.assert_allclose(differentiated, plain, rtol=0, atol=4 * np.finfo(np.float32).eps)
     np.testing.assert_array_equal(np.sign(differentiated), np.sign(plain))
+
+
+@pytest.mark.parametrize("scalar_first", [True, False], ids=["wxyz", "xyzw"])
+def test_jax_matrix_to_quaternion_kernels_differentiate_as_the_formula(scalar_first: bool) -> None:
+    """On the CPU jax's matrix_to_quaternion calls the C kernels (diffquat/jax/_xla.py: three
+    primitives, with derivative rules of their own); elsewhere it is the formula (``_M2Q``). Both give
+    the same values and the same first and second derivatives, forward and reverse, under ``vmap``
+    too, on rotations (half-turns among them) and on matrices off SO(3); ``check_grads`` passes on the
+    formula (the public function, the kernels, is checked by the tests above)."""
+    from diffquat.jax import _M2Q
+    from diffquat.jax._namespace import XP
+
+    if BACKENDS["jax"].module._xla is None:
+        pytest.skip("the C extension is not built (no C compiler at install)")
+    names = ("random", "identity", "half_turns", "near_half_turns", "near_identity")
+    rotations = oracle_quaternion_to_matrix(
+        np.concatenate([CASES_BY_NAME[name].quaternions("float64").reshape(-1, 4) for name in names])
+    )
+    m = jnp.asarray(np.concatenate([rotations, perturbed_rotations(16, seed=11)]))
+    rng = np.random.default_rng(12)
+    t, w = jnp.asarray(rng.normal(size=m.shape)), jnp.asarray(rng.normal(size=(*m.shape[:-2], 4)))
+    even = len(m) // 2 * 2
+    kernels = lambda x: BACKENDS["jax"].module.matrix_to_quaternion(x, scalar_first=scalar_first)  # noqa: E731
+    formula = lambda x: _M2Q[scalar_first](XP, x)  # noqa: E731
+    evaluations = (
+        lambda f: f(m),
+        lambda f: jax.jvp(f, (m,), (t,))[1],
+        lambda f: jax.vjp(f, m)[1](w)[0],
+        lambda f: jax.jvp(jax.grad(lambda x: (f(x) * w).sum()), (m,), (t,))[1],  # second order
+        lambda f: jax.grad(lambda x: (jax.jvp(f, (x,), (t,))[1] * w).sum())(m),  # forward, then reverse
+        lambda f: jax.vmap(jax.vmap(jax.grad(lambda x, v: (f(x) * v).sum())), (1, 1))(
+            m[:even].reshape(-1, 2, 3, 3), w[:even].reshape(-1, 2, 4)
+        ),
+    )
+    for evaluate in evaluations:
+        np.testing.assert_allclose(
+            np.asarray(jax.jit(evaluate, static_argnums=0)(kernels)),
+            np.asarray(jax.jit(evaluate, static_argnums=0)(formula)),
+            rtol=1e-12,
+            atol=1e-12,
+        )
+    check_grads(formula, (m[-16:],), order=2, modes=("fwd", "rev"), eps=1e-6)
 
 
 @only(backend=lambda b: b in ("torch", "jax"))

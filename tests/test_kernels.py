@@ -1,14 +1,20 @@
-"""The C kernels of ``quaternion_to_matrix`` and ``matrix_to_quaternion`` (diffquat/torch/_kernels.c,
-bound in _cpu.py): what the shared matrix and tests/test_fused.py do not already check through them.
+"""The C kernels of ``quaternion_to_matrix`` and ``matrix_to_quaternion`` (diffquat/_kernels.c, bound
+for torch in diffquat/torch/_cpu.py and for jax in diffquat/jax/_xla.py): what the shared matrix,
+tests/test_fused.py and the jax tests do not already check through them.
 
 The shared matrix runs every case, dtype, gradient and transform through the public torch functions,
 which take the kernels for eager CPU tensors; tests/test_fused.py compares the kernels' Functions
 with the core at every edge case in float64, both storage orders, forward mode included. Here: that
 the extension is built at all (a silent fallback would hide it), float32 agreement, the strided
-inputs that the kernels read in place, batch shapes, the split over threads, and which calls take
-them."""
+inputs that the kernels read in place, batch shapes, the split over threads, which calls take
+them, and that the XLA handlers declare XLA's FFI structures as jaxlib's header does."""
 
 from __future__ import annotations
+
+import shutil
+import subprocess
+import sysconfig
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,6 +22,7 @@ import torch
 from cases import CASES_BY_NAME, oracle_quaternion_to_matrix
 from torch.autograd import forward_ad
 
+import diffquat
 import diffquat.torch as dq
 from diffquat import _core
 from diffquat.torch import _cpu, _fused
@@ -23,9 +30,11 @@ from diffquat.torch import _cpu, _fused
 
 def test_the_extension_is_built() -> None:
     """pip builds the kernels wherever a C compiler is (pyproject.toml); on such a machine (CI's) a
-    failed build must fail here, not fall back silently to the slower pure-torch paths."""
-    from diffquat.torch import _kernels
+    failed build must fail here, not fall back silently to the slower pure-torch and XLA paths."""
+    import diffquat.jax
+    from diffquat import _kernels
 
+    assert diffquat.jax._xla is not None
     assert _fused._cpu is _cpu
     assert callable(_kernels.q2m_forward)
     assert _fused.q2m_path(torch.zeros(4)) is _cpu.quaternion_to_matrix
@@ -235,3 +244,59 @@ def test_lazily_negated_views() -> None:
     assert torch._neg_view(m).is_neg()
     torch.testing.assert_close(dq.matrix_to_quaternion(torch._neg_view(m)), dq.matrix_to_quaternion(-m))
     torch.testing.assert_close(dq.quaternion_to_matrix(torch._neg_view(q)), dq.quaternion_to_matrix(-q))
+
+
+# The fields of XLA's FFI structures that diffquat/_kernels.c reads or writes: its structure, the
+# header's, and the fields ("its:the header's" where the names differ). Then the enumerators it uses.
+_XLA_LAYOUT = [
+    ("XlaExtension", "XLA_FFI_Extension_Base", "struct_size type next"),
+    ("XlaApiVersion", "XLA_FFI_Api_Version", "extension_start major_version minor_version"),
+    ("XlaMetadata", "XLA_FFI_Metadata", "struct_size api_version traits"),
+    ("XlaMetadataExtension", "XLA_FFI_Metadata_Extension", "extension_base metadata"),
+    ("XlaBuffer", "XLA_FFI_Buffer", "dtype data rank dims"),
+    ("XlaList", "XLA_FFI_Args", "size types items:args"),
+    ("XlaList", "XLA_FFI_Rets", "size types items:rets"),
+    ("XlaCallFrame", "XLA_FFI_CallFrame", "extension_start api ctx stage args rets"),
+]
+_XLA_ENUMS = [
+    ("XLA_EXTENSION_METADATA", "XLA_FFI_Extension_Metadata"),
+    ("XLA_STAGE_EXECUTE", "XLA_FFI_ExecutionStage_EXECUTE"),
+    ("XLA_F64", "XLA_FFI_DataType_F64"),
+    ("XLA_API_MAJOR", "XLA_FFI_API_MAJOR"),
+]
+
+
+def test_xla_declarations_match_jaxlib_header(tmp_path: Path) -> None:
+    """The XLA handlers declare the few FFI structures they use themselves (the extension builds
+    without jax); compiled beside the installed jaxlib's ``xla/ffi/api/c_api.h``, every size, offset
+    and enumerator they rely on equals the header's, and the API version they report is one that
+    header describes (a mismatch is a compile error here, not a crash in a user's program)."""
+    import jax.ffi
+
+    compiler = shutil.which(sysconfig.get_config_var("CC").split()[0]) or shutil.which("cc")
+    if compiler is None:
+        pytest.skip("no C compiler")
+    checks = []
+    for ours, theirs, fields in _XLA_LAYOUT:
+        checks.append(f'_Static_assert(sizeof({ours}) <= sizeof({theirs}), "{ours}");')
+        for field in fields.split():
+            mine, _, header = field.partition(":")
+            header = header or mine
+            for measure in ("offsetof({s}, {f})", "sizeof((({s} *)0)->{f})"):
+                a, b = measure.format(s=ours, f=mine), measure.format(s=theirs, f=header)
+                checks.append(f'_Static_assert({a} == {b}, "{ours}.{mine}");')
+    checks += [f'_Static_assert((int){a} == (int){b}, "{a}");' for a, b in _XLA_ENUMS]
+    checks.append('_Static_assert(XLA_API_MINOR <= XLA_FFI_API_MINOR, "minor version");')
+    checks.append('_Static_assert(XLA_METADATA_WRITTEN == XLA_FFI_Metadata_STRUCT_SIZE, "metadata");')
+    source = tmp_path / "layout.c"
+    kernels = Path(diffquat.__file__).parent / "_kernels.c"
+    source.write_text(
+        "#include <stddef.h>\n"
+        f'#include "{kernels}"\n'
+        "#include <xla/ffi/api/c_api.h>\n" + "\n".join(checks) + "\n"
+    )
+    includes = [f"-I{jax.ffi.include_dir()}", f"-I{sysconfig.get_paths()['include']}"]
+    result = subprocess.run(
+        [compiler, "-fsyntax-only", "-std=gnu11", *includes, str(source)], capture_output=True, text=True
+    )
+    assert result.returncode == 0, result.stderr

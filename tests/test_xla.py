@@ -34,15 +34,46 @@ def test_each_cosine_and_sine_is_evaluated_once(name: str) -> None:
 def test_matrix_to_quaternion_cotangent_is_one_stack(scalar_first: bool) -> None:
     """The reverse-mode program of matrix_to_quaternion assembles the (..., 3, 3) cotangent in one
     stack of the nine entries, not as nine zero-padded copies of the matrix summed (see
-    ``_core._tangent_entries``), and the scalar-last result is built in its order, not reindexed."""
+    ``_core._tangent_entries``), and the scalar-last result is built in its order, not reindexed.
+    That is the formula every platform but the CPU compiles (the CPU calls the C kernels: below)."""
+    from diffquat.jax._namespace import XP
 
     def loss(m: Any) -> Any:
         weights = jnp.arange(4.0, dtype=jnp.float32)[None]
-        return (dq.matrix_to_quaternion(m, scalar_first=scalar_first) * weights).sum()
+        return (dq._M2Q[scalar_first](XP, m) * weights).sum()
 
     hlo = jax.jit(jax.grad(loss)).lower(jnp.ones((1024, 3, 3), jnp.float32)).compile().as_text()
     assert hlo is not None
     assert not re.findall(r" pad\(", hlo)
+
+
+@pytest.mark.parametrize("scalar_first", [True, False], ids=["wxyz", "xyzw"])
+def test_matrix_to_quaternion_calls_the_kernels_on_the_cpu(scalar_first: bool) -> None:
+    """On the CPU, matrix_to_quaternion is the C kernels as custom calls (``diffquat/jax/_xla.py``):
+    the forward program is the forward kernel alone, and the reverse program the forward kernel for
+    the result and the backward kernel for the cotangent, with nothing of the formula (no square root)
+    compiled beside them; the vmap of a gradient still calls them."""
+    if dq._xla is None:
+        pytest.skip("the C extension is not built (no C compiler at install)")
+    order = "wxyz" if scalar_first else "xyzw"
+    m = jnp.ones((1024, 3, 3), jnp.float32)
+
+    def f(x: Any) -> Any:
+        return dq.matrix_to_quaternion(x, scalar_first=scalar_first)
+
+    def loss(x: Any) -> Any:
+        return (f(x) * jnp.arange(4.0, dtype=jnp.float32)[None]).sum()
+
+    def calls(fn: Callable[..., Any], *args: Any) -> list[str]:
+        text = jax.jit(fn).lower(*args).compile().as_text()
+        assert text is not None
+        assert "sqrt(" not in text
+        return sorted(re.findall(r'custom_call_target="([^"]+)"', text))
+
+    assert calls(f, m) == [f"diffquat_m2q_forward_{order}"]
+    backward = [f"diffquat_m2q_backward_{order}", f"diffquat_m2q_forward_{order}"]
+    assert calls(jax.grad(loss), m) == backward
+    assert calls(jax.vmap(jax.grad(loss)), m.reshape(4, 256, 3, 3)) == backward
 
 
 @pytest.mark.parametrize("scalar_first", [True, False], ids=["wxyz", "xyzw"])

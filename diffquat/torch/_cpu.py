@@ -26,7 +26,8 @@ import torch
 from torch import Tensor
 from torch.autograd import forward_ad
 
-from . import _fused, _kernels
+from .. import _kernels
+from . import _fused
 
 _DTYPE = {torch.float32: 0, torch.float64: 1}
 

@@ -39,7 +39,7 @@ from .. import _core, _fused
 # The C kernels, where the extension was built (pyproject.toml builds it wherever a C compiler is).
 _cpu: Any
 try:
-    from . import _kernels  # noqa: F401
+    from .. import _kernels  # noqa: F401
 except ImportError:
     _cpu = None
 else:

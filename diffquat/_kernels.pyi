@@ -1,5 +1,7 @@
-# The C extension diffquat/torch/_kernels.c: integer arguments only (data pointers, strides in
-# elements, sizes and flags); diffquat/torch/_cpu.py is its only caller.
+# The C extension diffquat/_kernels.c. The kernels take integer arguments only (data pointers, strides
+# in elements, sizes and flags); diffquat/torch/_cpu.py is their only caller. xla_handlers gives the
+# same kernels as XLA FFI handlers, for diffquat/jax/_xla.py.
+from typing import Any
 
 def q2m_forward(
     dtype: int, threads: int, n: int, first: int, q: int, q_row: int, q_component: int, out: int, /
@@ -40,3 +42,4 @@ def m2q_backward(
     out: int,
     /,
 ) -> None: ...
+def xla_handlers() -> dict[str, Any]: ...

@@ -1,5 +1,6 @@
-/* diffquat.torch._kernels: quaternion_to_matrix and matrix_to_quaternion on the CPU, forward and
- * backward, each one pass over memory.
+/* diffquat._kernels: quaternion_to_matrix and matrix_to_quaternion on the CPU, forward and
+ * backward, each one pass over memory. Two callers: diffquat.torch (Python entry points over raw
+ * pointers, below) and diffquat.jax (XLA FFI handlers, at the end of this file).
  *
  * The CPU counterpart of diffquat/torch/_triton.py. Eager torch evaluates the core formulas as ~40
  * elementwise operations forward and as many backward, each a full pass over memory and a few
@@ -17,9 +18,10 @@
  *   - its backward: _core.matrix_to_quaternion_cotangent, the scale read back from the result.
  *
  * No Python objects are touched inside the loops, so they run without the GIL. It does not depend
- * on torch: the Python side (diffquat/torch/_cpu.py) passes data pointers and strides in elements,
- * so strided inputs (an expanded cotangent, scalar-last storage, a transposed matrix) are read in
- * place instead of copied. Outputs are contiguous. Large batches are split over threads.
+ * on torch or jax: torch's side (diffquat/torch/_cpu.py) passes data pointers and strides in
+ * elements, so strided inputs (an expanded cotangent, scalar-last storage, a transposed matrix) are
+ * read in place instead of copied; XLA passes dense row-major buffers. Outputs are contiguous. Large
+ * batches are split over threads.
  */
 
 #define PY_SSIZE_T_CLEAN
@@ -28,6 +30,9 @@
 #include <float.h>
 #include <math.h>
 #include <pthread.h>
+#include <sched.h>
+#include <stddef.h>
+#include <unistd.h>
 #include <stdint.h>
 
 /* Everything a kernel needs, as the Python side passed it. Strides are in elements. */
@@ -457,6 +462,151 @@ static PyObject *m2q_backward(PyObject *self, PyObject *const *argv, Py_ssize_t 
     return launch(KERNELS[M2Q_BACKWARD][v[0] != 0], &args, v[2], v[1]);
 }
 
+/* ---------------------------------------------------------------------------------------------
+ * XLA FFI handlers: the same kernels as custom calls of jax programs on the CPU (diffquat/jax/_xla.py
+ * registers them and emits the calls).
+ *
+ * XLA's FFI is a C ABI, versioned and kept binary compatible (jaxlib ships it as
+ * xla/ffi/api/c_api.h). The handlers need only the few structures below, declared here so that the
+ * extension builds without jax installed (pip builds it in an isolated environment);
+ * tests/test_kernels.py compiles them beside the installed jaxlib's header and checks every size
+ * and offset. A handler is called with a metadata extension once, to report the API version it was
+ * written against, and then at each execution stage; the kernels run at EXECUTE only. The handlers
+ * never return an error (NULL is success): the Python side checks dtypes and shapes when it traces,
+ * and every buffer XLA passes here is dense, row-major and of the traced shape. */
+typedef struct XlaExtension {
+    size_t struct_size;
+    int type; /* 1: metadata */
+    struct XlaExtension *next;
+} XlaExtension;
+
+typedef struct {
+    size_t struct_size;
+    XlaExtension *extension_start;
+    int major_version, minor_version;
+} XlaApiVersion;
+
+typedef struct {
+    size_t struct_size;
+    XlaApiVersion api_version;
+    uint32_t traits;
+} XlaMetadata;
+
+typedef struct {
+    XlaExtension extension_base;
+    XlaMetadata *metadata;
+} XlaMetadataExtension;
+
+typedef struct {
+    size_t struct_size;
+    XlaExtension *extension_start;
+    int dtype; /* 11: F32, 12: F64 */
+    void *data;
+    int64_t rank;
+    int64_t *dims;
+} XlaBuffer;
+
+typedef struct { /* the arguments or the results of a call */
+    size_t struct_size;
+    XlaExtension *extension_start;
+    int64_t size;
+    int *types;
+    void **items; /* XlaBuffer * each: every argument and result here is a buffer */
+} XlaList;
+
+typedef struct { /* the leading fields of XLA_FFI_CallFrame, which are all a handler reads */
+    size_t struct_size;
+    XlaExtension *extension_start;
+    const void *api;
+    void *ctx;
+    int stage; /* 3: EXECUTE */
+    XlaList args;
+    XlaList rets;
+} XlaCallFrame;
+
+enum { XLA_EXTENSION_METADATA = 1, XLA_STAGE_EXECUTE = 3, XLA_F64 = 12 };
+/* The bytes of XlaMetadata that a handler writes (up to the traits, without the tail padding). */
+#define XLA_METADATA_WRITTEN (offsetof(XlaMetadata, traits) + sizeof(uint32_t))
+enum { XLA_API_MAJOR = 0, XLA_API_MINOR = 3 }; /* the version whose layout the structures follow */
+
+/* Threads for a large batch: the processors this process may run on (read once, at import). XLA's
+ * CPU runtime runs the custom call on one of its own threads and waits for it. */
+static int64_t xla_threads = 1;
+
+static int64_t allowed_processors(void) {
+#ifdef CPU_COUNT
+    cpu_set_t set;
+    if (sched_getaffinity(0, sizeof set, &set) == 0 && CPU_COUNT(&set) > 0) return CPU_COUNT(&set);
+#endif
+    long online = sysconf(_SC_NPROCESSORS_ONLN);
+    return online > 0 ? online : 1;
+}
+
+static XlaBuffer *xla_arg(const XlaCallFrame *frame, int i) { return (XlaBuffer *)frame->args.items[i]; }
+
+/* Rows of a buffer whose trailing `trailing` dimensions are one quaternion or one matrix. */
+static int64_t xla_rows(const XlaBuffer *buffer, int trailing) {
+    int64_t n = 1;
+    for (int64_t i = 0; i < buffer->rank - trailing; ++i) n *= buffer->dims[i];
+    return n;
+}
+
+/* m2q_forward: (matrix) -> q; m2q_backward: (matrix, q, dL/dq) -> dL/dR; q in the handler's order. */
+static void *xla_call(XlaCallFrame *frame, int kernel, int first) {
+    XlaExtension *extension = frame->extension_start;
+    if (extension != NULL && extension->type == XLA_EXTENSION_METADATA) {
+        XlaMetadata *metadata = ((XlaMetadataExtension *)extension)->metadata;
+        /* A runtime whose metadata is shorter than the fields written here reads version 0.0 and
+         * refuses the handler with a message, where writing past its structure would corrupt it. */
+        if (metadata->struct_size >= XLA_METADATA_WRITTEN) {
+            metadata->api_version = (XlaApiVersion){sizeof(XlaApiVersion), NULL, XLA_API_MAJOR, XLA_API_MINOR};
+            metadata->traits = 0;
+        }
+        return NULL;
+    }
+    if (frame->stage != XLA_STAGE_EXECUTE) return NULL;
+    const XlaBuffer *matrix = xla_arg(frame, 0);
+    /* Dense row-major strides in elements: a matrix row is 9 apart, a quaternion row 4. */
+    Args args = {.a = matrix->data, .sa = {9, 3, 1}, .out = ((XlaBuffer *)frame->rets.items[0])->data,
+                 .first = first};
+    if (kernel == M2Q_BACKWARD) {
+        args.b = xla_arg(frame, 1)->data, args.sb[0] = 4, args.sb[1] = 1;
+        args.c = xla_arg(frame, 2)->data, args.sc[0] = 4, args.sc[1] = 1;
+    }
+    run(KERNELS[kernel][matrix->dtype == XLA_F64], &args, xla_rows(matrix, 2), xla_threads);
+    return NULL;
+}
+
+static void *xla_m2q_forward_wxyz(XlaCallFrame *frame) { return xla_call(frame, M2Q_FORWARD, 1); }
+static void *xla_m2q_forward_xyzw(XlaCallFrame *frame) { return xla_call(frame, M2Q_FORWARD, 0); }
+static void *xla_m2q_backward_wxyz(XlaCallFrame *frame) { return xla_call(frame, M2Q_BACKWARD, 1); }
+static void *xla_m2q_backward_xyzw(XlaCallFrame *frame) { return xla_call(frame, M2Q_BACKWARD, 0); }
+
+/* xla_handlers(): {name: PyCapsule of the handler}, for jax.ffi.register_ffi_target. */
+static PyObject *xla_handlers(PyObject *self, PyObject *unused) {
+    static const struct {
+        const char *name;
+        void *(*handler)(XlaCallFrame *);
+    } table[] = {
+        {"m2q_forward_wxyz", xla_m2q_forward_wxyz},
+        {"m2q_forward_xyzw", xla_m2q_forward_xyzw},
+        {"m2q_backward_wxyz", xla_m2q_backward_wxyz},
+        {"m2q_backward_xyzw", xla_m2q_backward_xyzw},
+    };
+    PyObject *handlers = PyDict_New();
+    if (handlers == NULL) return NULL;
+    for (size_t i = 0; i < sizeof table / sizeof table[0]; ++i) {
+        PyObject *capsule = PyCapsule_New((void *)table[i].handler, NULL, NULL);
+        if (capsule == NULL || PyDict_SetItemString(handlers, table[i].name, capsule) < 0) {
+            Py_XDECREF(capsule);
+            Py_DECREF(handlers);
+            return NULL;
+        }
+        Py_DECREF(capsule);
+    }
+    return handlers;
+}
+
 static PyMethodDef methods[] = {
     {"q2m_forward", (PyCFunction)(void (*)(void))q2m_forward, METH_FASTCALL,
      "quaternion_to_matrix forward over raw buffers (see diffquat/torch/_fused.py)."},
@@ -466,6 +616,8 @@ static PyMethodDef methods[] = {
      "matrix_to_quaternion forward over raw buffers."},
     {"m2q_backward", (PyCFunction)(void (*)(void))m2q_backward, METH_FASTCALL,
      "matrix_to_quaternion backward over raw buffers."},
+    {"xla_handlers", xla_handlers, METH_NOARGS,
+     "The matrix_to_quaternion kernels as XLA FFI handlers: {name: PyCapsule} (see diffquat/jax/_xla.py)."},
     {NULL, NULL, 0, NULL},
 };
 
@@ -477,4 +629,7 @@ static struct PyModuleDef module = {
     .m_methods = methods,
 };
 
-PyMODINIT_FUNC PyInit__kernels(void) { return PyModule_Create(&module); }
+PyMODINIT_FUNC PyInit__kernels(void) {
+    xla_threads = allowed_processors();
+    return PyModule_Create(&module);
+}

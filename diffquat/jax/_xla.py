@@ -1,0 +1,169 @@
+"""``matrix_to_quaternion`` on the CPU through the C kernels of ``diffquat/_kernels.c``, called from
+XLA programs (jax's FFI): one pass over memory forward and one backward, where XLA's own loops for
+the formula run at 13% of the copy bound forward and its reverse mode takes several passes.
+
+Three primitives, each over any leading batch dimensions:
+
+- ``m2q(matrix) -> q``: the forward kernel.
+- ``m2q_tangent(matrix, q, dm) -> dq``, linear in ``dm``: the core's forward-mode formula
+  (:func:`diffquat._core.matrix_to_quaternion_tangent`), which XLA compiles; forward mode is no hot
+  path, and it has no kernel. Its transpose is ``m2q_cotangent``.
+- ``m2q_cotangent(matrix, q, g) -> dL/dR``, linear in ``g``: the backward kernel. Its transpose is
+  ``m2q_tangent``.
+
+So ``jvp`` is the kernel and the core tangent, and ``vjp``/``grad`` the two kernels. The tangent and
+the cotangent differentiate in all their arguments as the core formulas that they evaluate, so every
+higher order (``hessian``, ``check_grads`` at order 2) works through XLA's derivatives of those.
+``vmap`` moves the batch axis to the front (the kernels loop over leading dimensions).
+
+The kernels take float32 and float64 (the backend computes half precision in float32 before). Only
+the CPU lowering calls them; every other platform lowers the core formulas, and
+:mod:`diffquat.jax` only takes this path where ``jit`` lowers for the CPU (``platform_dependent``).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from typing import Any, cast
+
+import jax
+from jax import Array
+from jax.core import ShapedArray
+from jax.extend.core import Primitive
+from jax.interpreters import ad, batching, mlir
+
+from .. import _core, _kernels
+from ._namespace import XP
+
+_ORDER = {True: "wxyz", False: "xyzw"}
+
+# jax's interpreter helpers carry no annotations; typed here once.
+_instantiate: Callable[[Any], Array] = ad.instantiate_zeros
+_undefined: Callable[[Any], bool] = ad.is_undefined_primal
+
+
+def _bind(prim: Primitive, *args: Any, scalar_first: bool) -> Array:
+    bind: Callable[..., Array] = prim.bind
+    return bind(*args, scalar_first=scalar_first)
+
+
+def _register_targets() -> None:
+    """Register each handler with XLA's CPU runtime once (the registry is global to the process)."""
+    for name, capsule in _kernels.xla_handlers().items():
+        jax.ffi.register_ffi_target(f"diffquat_{name}", capsule, platform="cpu")
+
+
+_register_targets()
+
+
+def _primitive(name: str, abstract: Callable[..., ShapedArray], formula: Callable[..., Array]) -> Primitive:
+    """A primitive evaluated eagerly by ``jit`` of itself, lowered as ``formula`` (the core) on every
+    platform; the CPU lowering of a kernel is registered beside it."""
+    prim: Any = Primitive(f"diffquat_{name}")  # untyped in jax
+
+    @functools.cache
+    def compiled(**params: Any) -> Callable[..., Array]:
+        return jax.jit(functools.partial(prim.bind, **params))
+
+    prim.def_impl(lambda *args, **params: compiled(**params)(*args))
+    prim.def_abstract_eval(abstract)
+    mlir.register_lowering(prim, mlir.lower_fun(formula, multiple_results=False))
+    batching.primitive_batchers[prim] = functools.partial(_batched, prim)
+    return cast(Primitive, prim)
+
+
+def _batched(prim: Primitive, args: tuple[Array, ...], dims: tuple[int | None, ...], **params: Any) -> Any:
+    """``vmap``: the batch axis moved to the front of every argument (broadcast where unbatched)."""
+    size = next(arg.shape[dim] for arg, dim in zip(args, dims, strict=True) if dim is not None)
+    moved = [
+        jax.numpy.broadcast_to(arg, (size, *arg.shape)) if dim is None else jax.numpy.moveaxis(arg, dim, 0)
+        for arg, dim in zip(args, dims, strict=True)
+    ]
+    return _bind(prim, *moved, **params), 0
+
+
+def _kernel_lowering(prim: Primitive, kernel: str) -> None:
+    """The CPU lowering of ``prim``: a custom call of the handler for its storage order."""
+
+    def lower(ctx: Any, *args: Any, scalar_first: bool) -> Any:
+        # The order is in the target's name: the handlers take no attributes.
+        return jax.ffi.ffi_lowering(f"diffquat_{kernel}_{_ORDER[scalar_first]}")(ctx, *args)
+
+    mlir.register_lowering(prim, lower, platform="cpu")
+
+
+def _forward_formula(matrix: Array, *, scalar_first: bool) -> Array:
+    return _core.matrix_to_quaternion(XP, matrix, scalar_first=scalar_first)
+
+
+def _tangent_formula(matrix: Array, q: Array, dm: Array, *, scalar_first: bool) -> Array:
+    return _core.matrix_to_quaternion_tangent(XP, matrix, q, dm, scalar_first=scalar_first)
+
+
+def _cotangent_formula(matrix: Array, q: Array, g: Array, *, scalar_first: bool) -> Array:
+    if not scalar_first:  # the core's cotangent reads scalar-first quaternions
+        q, g = _core.xyzw_to_wxyz(XP, q), _core.xyzw_to_wxyz(XP, g)
+    return _core.matrix_to_quaternion_cotangent(XP, matrix, q, g)
+
+
+m2q_p = _primitive(
+    "m2q",
+    lambda matrix, *, scalar_first: ShapedArray((*matrix.shape[:-2], 4), matrix.dtype),
+    _forward_formula,
+)
+m2q_tangent_p = _primitive(
+    "m2q_tangent", lambda matrix, q, dm, *, scalar_first: ShapedArray(q.shape, q.dtype), _tangent_formula
+)
+m2q_cotangent_p = _primitive(
+    "m2q_cotangent",
+    lambda matrix, q, g, *, scalar_first: ShapedArray(matrix.shape, matrix.dtype),
+    _cotangent_formula,
+)
+_kernel_lowering(m2q_p, "m2q_forward")
+_kernel_lowering(m2q_cotangent_p, "m2q_backward")
+
+
+def _m2q_jvp(primals: tuple[Array], tangents: tuple[Any], *, scalar_first: bool) -> tuple[Array, Array]:
+    (matrix,), (dm,) = primals, tangents
+    q = _bind(m2q_p, matrix, scalar_first=scalar_first)
+    return q, _bind(m2q_tangent_p, matrix, q, _instantiate(dm), scalar_first=scalar_first)
+
+
+def _formula_jvp(formula: Callable[..., Array]) -> Callable[..., tuple[Array, Array]]:
+    """The JVP of a tangent or cotangent primitive in all its arguments: that of the core formula it
+    evaluates, differentiated by jax (second and higher orders only)."""
+
+    def jvp(
+        primals: tuple[Array, ...], tangents: tuple[Any, ...], *, scalar_first: bool
+    ) -> tuple[Array, Array]:
+        fn = functools.partial(formula, scalar_first=scalar_first)
+        out: tuple[Array, Array] = jax.jvp(fn, primals, tuple(_instantiate(t) for t in tangents))
+        return out
+
+    return jvp
+
+
+def _transpose(to: Primitive) -> Callable[..., list[Any]]:
+    """Transpose of a tangent or cotangent primitive in its linear (last) argument: the other one,
+    at the same matrix and result."""
+
+    def transpose(ct: Any, matrix: Any, q: Any, linear: Any, *, scalar_first: bool) -> list[Any]:
+        assert not _undefined(matrix) and not _undefined(q)
+        if type(ct) is ad.Zero:
+            return [None, None, ad.Zero(linear.aval)]
+        return [None, None, _bind(to, matrix, q, ct, scalar_first=scalar_first)]
+
+    return transpose
+
+
+ad.primitive_jvps[m2q_p] = _m2q_jvp
+ad.primitive_jvps[m2q_tangent_p] = _formula_jvp(_tangent_formula)
+ad.primitive_jvps[m2q_cotangent_p] = _formula_jvp(_cotangent_formula)
+ad.primitive_transposes[m2q_tangent_p] = _transpose(m2q_cotangent_p)
+ad.primitive_transposes[m2q_cotangent_p] = _transpose(m2q_tangent_p)
+
+
+def matrix_to_quaternion(matrix: Array, scalar_first: bool) -> Array:
+    """:func:`diffquat._core.matrix_to_quaternion` of a float32 or float64 ``(..., 3, 3)`` array."""
+    return _bind(m2q_p, matrix, scalar_first=bool(scalar_first))
