@@ -76,6 +76,24 @@ def test_matrix_to_quaternion_calls_the_kernels_on_the_cpu(scalar_first: bool) -
     assert calls(jax.vmap(jax.grad(loss)), m.reshape(4, 256, 3, 3)) == backward
 
 
+def test_matrix_to_axis_angle_takes_the_kernels_on_the_cpu() -> None:
+    """jax's matrix_to_axis_angle takes the kernels for its quaternion step on the CPU (forward, and
+    backward under differentiation); matrix_to_euler_angles keeps the core formula (benchmarks/)."""
+    if dq._xla is None:
+        pytest.skip("the C extension is not built (no C compiler at install)")
+    m = jnp.ones((1024, 3, 3), jnp.float32)
+
+    def targets(fn: Callable[..., Any]) -> list[str]:
+        return sorted(re.findall(r'custom_call_target="([^"]+)"', jax.jit(fn).lower(m).compile().as_text()))
+
+    assert targets(dq.matrix_to_axis_angle) == ["diffquat_m2q_forward_wxyz"]
+    assert targets(jax.grad(lambda x: dq.matrix_to_axis_angle(x).sum())) == [
+        "diffquat_m2q_backward_wxyz",
+        "diffquat_m2q_forward_wxyz",
+    ]
+    assert targets(lambda x: dq.matrix_to_euler_angles(x, "ZYX")) == []
+
+
 @pytest.mark.parametrize("scalar_first", [True, False], ids=["wxyz", "xyzw"])
 def test_quaternion_to_matrix_cotangent_is_one_stack(scalar_first: bool) -> None:
     """The reverse-mode program of quaternion_to_matrix assembles the (..., 4) cotangent in one stack
