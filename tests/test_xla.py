@@ -3,7 +3,10 @@ per rotation, not once per matrix entry (XLA fuses by recomputation; see ``_core
 
 from __future__ import annotations
 
+import os
 import re
+import subprocess
+import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -74,6 +77,23 @@ def test_matrix_to_quaternion_calls_the_kernels_on_the_cpu(scalar_first: bool) -
     backward = [f"diffquat_m2q_backward_{order}", f"diffquat_m2q_forward_{order}"]
     assert calls(jax.grad(loss), m) == backward
     assert calls(jax.vmap(jax.grad(loss)), m.reshape(4, 256, 3, 3)) == backward
+
+
+def test_jax_export_with_the_kernels_switched_off() -> None:
+    """``jax.export`` refuses custom calls that are not jax's own: with DIFFQUAT_JAX_CPU_KERNELS=0 at
+    import, CPU programs are the formula, which exports and runs (a fresh process, since the switch is
+    read once)."""
+    script = (
+        "import jax, jax.numpy as jnp, numpy as np, diffquat.jax as dq\n"
+        "assert dq._xla is None\n"
+        "m = jnp.asarray(np.diag([1.0, -1.0, -1.0]))[None]\n"
+        "exported = jax.export.export(jax.jit(dq.matrix_to_quaternion))(m)\n"
+        "out = exported.call(m)\n"
+        "np.testing.assert_allclose(np.asarray(out), [[0.0, 1.0, 0.0, 0.0]], atol=1e-7)\n"
+    )
+    env = {**os.environ, "DIFFQUAT_JAX_CPU_KERNELS": "0"}
+    result = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
 
 
 def test_matrix_to_axis_angle_takes_the_kernels_on_the_cpu() -> None:

@@ -4,6 +4,8 @@ and ``jacfwd``/``jacrev``."""
 
 from __future__ import annotations
 
+import importlib
+import os
 from collections.abc import Callable
 from typing import Any
 
@@ -123,12 +125,20 @@ _M2Q = {order: _m2q_in_order(order) for order in (True, False)}
 
 
 # The C kernels as XLA custom calls (_xla.py), where the extension was built (pyproject.toml builds it
-# wherever a C compiler is found).
-_xla: Any
-try:
-    from . import _xla
-except ImportError:
-    _xla = None
+# wherever a C compiler is found), unless DIFFQUAT_JAX_CPU_KERNELS=0 at import: jax.export refuses
+# custom calls that are not jax's own (without DisabledSafetyCheck.custom_call), and an exported CPU
+# program calling them runs only where diffquat.jax is imported. With the switch off, CPU programs
+# are the formula, as on other platforms.
+def _cpu_kernels() -> Any:
+    if os.environ.get("DIFFQUAT_JAX_CPU_KERNELS", "1") == "0":
+        return None
+    try:
+        return importlib.import_module("._xla", __name__)
+    except ImportError:  # the extension was not built
+        return None
+
+
+_xla = _cpu_kernels()
 
 
 def _matrix_to_quaternion(xp: Any, matrix: Array, *, scalar_first: bool = True) -> Array:
