@@ -15,6 +15,7 @@ Numerical rules every function here follows, so that it is differentiable everyw
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import Any, TypeVar
 
@@ -353,13 +354,8 @@ def _m2q_recover_scale(xp: Any, matrix: Any, q: Any) -> tuple[Any, Any, Any, Any
     tied pivots (half-turns about a diagonal tie three), which made the second derivative wrong there."""
     pivots = _m2q_pivots(matrix, 1.0)
     use01, use0, use2 = _m2q_choice(xp, pivots)
-    w, x, y, z = split_quaternion(q, True)
-    return (
-        use01,
-        use0,
-        use2,
-        _m2q_pick(xp, use01, use0, use2, w, x, y, z) / _m2q_pick(xp, use01, use0, use2, *pivots),
-    )
+    chosen = functools.partial(_m2q_pick, xp, use01, use0, use2)
+    return use01, use0, use2, chosen(*split_quaternion(q, True)) / chosen(*pivots)
 
 
 class _Unstacked:
