@@ -12,6 +12,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 import diffquat.jax as dq
@@ -77,6 +78,26 @@ def test_matrix_to_quaternion_calls_the_kernels_on_the_cpu(scalar_first: bool) -
     backward = [f"diffquat_m2q_backward_{order}", f"diffquat_m2q_forward_{order}"]
     assert calls(jax.grad(loss), m) == backward
     assert calls(jax.vmap(jax.grad(loss)), m.reshape(4, 256, 3, 3)) == backward
+
+
+def test_kernel_primitives_lower_other_dtypes_as_the_formula() -> None:
+    """The kernels read float32 or float64; the backend casts half precision to float32 before, but a
+    primitive bound on another dtype (under some transform, or directly) lowers as the formula, in
+    that dtype, rather than hand XLA's buffer to a kernel that would misread it."""
+    if dq._xla is None:
+        pytest.skip("the C extension is not built (no C compiler at install)")
+    m = jnp.asarray(np.random.default_rng(0).normal(size=(8, 3, 3)), jnp.bfloat16)
+
+    def f(x: Any) -> Any:
+        return dq._xla.matrix_to_quaternion(x, True)
+
+    text = jax.jit(f).lower(m).compile().as_text()
+    assert text is not None and "custom_call" not in text
+    np.testing.assert_allclose(
+        np.asarray(jax.jit(f)(m), np.float32),
+        np.asarray(dq.matrix_to_quaternion(m.astype(jnp.float32))),
+        atol=2e-2,
+    )
 
 
 def test_jax_export_with_the_kernels_switched_off() -> None:

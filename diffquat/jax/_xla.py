@@ -83,10 +83,14 @@ def _batched(prim: Primitive, args: tuple[Array, ...], dims: tuple[int | None, .
     return _bind(prim, *moved, **params), 0
 
 
-def _kernel_lowering(prim: Primitive, kernel: str) -> None:
-    """The CPU lowering of ``prim``: a custom call of the handler for its storage order."""
+def _kernel_lowering(prim: Primitive, kernel: str, formula: Callable[..., Array]) -> None:
+    """The CPU lowering of ``prim``: a custom call of the handler for its storage order, for the
+    dtypes the kernels have (the handlers read float64 or else float32); any other is ``formula``."""
+    fallback = mlir.lower_fun(formula, multiple_results=False)
 
     def lower(ctx: Any, *args: Any, scalar_first: bool) -> Any:
+        if ctx.avals_in[0].dtype not in (jax.numpy.float32, jax.numpy.float64):
+            return fallback(ctx, *args, scalar_first=scalar_first)
         # The order is in the target's name: the handlers take no attributes.
         return jax.ffi.ffi_lowering(f"diffquat_{kernel}_{_ORDER[scalar_first]}")(ctx, *args)
 
@@ -120,8 +124,8 @@ m2q_cotangent_p = _primitive(
     lambda matrix, q, g, *, scalar_first: ShapedArray(matrix.shape, matrix.dtype),
     _cotangent_formula,
 )
-_kernel_lowering(m2q_p, "m2q_forward")
-_kernel_lowering(m2q_cotangent_p, "m2q_backward")
+_kernel_lowering(m2q_p, "m2q_forward", _forward_formula)
+_kernel_lowering(m2q_cotangent_p, "m2q_backward", _cotangent_formula)
 
 
 def _m2q_jvp(primals: tuple[Array], tangents: tuple[Any], *, scalar_first: bool) -> tuple[Array, Array]:
