@@ -58,7 +58,7 @@ typedef void (*Kernel)(const Args *, int64_t, int64_t);
  * kernel is also compiled for AVX2, and the loader picks the build that the processor runs
  * (target_clones); FMA stays off, so every build rounds as the core does. */
 #define BLOCK 128
-#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__)
+#if defined(__x86_64__) && defined(__GNUC__) && !defined(__clang__) && !defined(DIFFQUAT_PORTABLE)
 #define CLONES __attribute__((target_clones("default", "avx2")))
 #else
 #define CLONES
@@ -104,7 +104,9 @@ DEFINE_ROWS(float, f32, 9)
 DEFINE_ROWS(double, f64, 4)
 DEFINE_ROWS(double, f64, 9)
 
-#if defined(__SSE2__)
+/* DIFFQUAT_PORTABLE (a build the tests make, see tests/test_kernels.py) keeps to the plain loops. */
+#if defined(__SSE2__) && !defined(DIFFQUAT_PORTABLE)
+#define FAST_MOVES 1
 #include <immintrin.h>
 /* The fast moves of contiguous rows ("_fast_"): they move as many rows as they can and return how
  * many; the one-row loops above ("_tail_") do the rest. float32 on x86-64: four rows at a time, a
@@ -173,7 +175,7 @@ static inline int scatter9_fast_f32(float *dst, float v[9][BLOCK], int cnt) {
     static inline int gather9_fast_##SUFFIX(T v[9][BLOCK], const T *src, int cnt) { return 0; }     \
     static inline int scatter4_fast_##SUFFIX(T *dst, T v[4][BLOCK], int cnt) { return 0; }          \
     static inline int scatter9_fast_##SUFFIX(T *dst, T v[9][BLOCK], int cnt) { return 0; }
-#if !defined(__SSE2__)
+#if !defined(FAST_MOVES)
 DEFINE_NO_FAST_MOVES(float, f32)
 #endif
 DEFINE_NO_FAST_MOVES(double, f64)
@@ -209,6 +211,32 @@ DEFINE_NO_FAST_MOVES(double, f64)
 DEFINE_MOVES(float, f32)
 DEFINE_MOVES(double, f64)
 
+/* Whether every value is finite: a value times 0 is 0 for a finite one and NaN for an infinity or a
+ * NaN, so the sum of such products is 0 exactly when all are finite (branch-free, and no sum of the
+ * values themselves, which could overflow). */
+#define FINITE4(a, b, c, d) ((a) * 0 + (b) * 0 + (c) * 0 + (d) * 0 == 0)
+#define FINITE9(m, j)                                                                               \
+    ((m)[0][j] * 0 + (m)[1][j] * 0 + (m)[2][j] * 0 + (m)[3][j] * 0 + (m)[4][j] * 0 + (m)[5][j] * 0 + \
+         (m)[6][j] * 0 + (m)[7][j] * 0 + (m)[8][j] * 0 ==                                           \
+     0)
+
+/* _core._unit_components, declaring big (the largest component, 1 for the zero quaternion), inv
+ * (1 / |q / big|, 0 for the zero quaternion) and the unit components uw .. uz: the quaternion is
+ * divided by its largest component before it is normalised (the squared norm then lies in [1, 4]), so
+ * every finite norm whose square is normal works; the zero quaternion (squared norm below the smallest
+ * normal number) takes 1/|q| = 0, the identity. T, TINY and SQRT are the kernel's type and its
+ * smallest normal number and square root. */
+#define UNIT(T, TINY, SQRT, W, X, Y, Z)                                                                          \
+    T n2 = (W) * (W) + (X) * (X) + (Y) * (Y) + (Z) * (Z);                                           \
+    const int nonzero = n2 >= TINY;                                                                \
+    T aw = (W) < 0 ? -(W) : (W), ax = (X) < 0 ? -(X) : (X);                                         \
+    T ay = (Y) < 0 ? -(Y) : (Y), az = (Z) < 0 ? -(Z) : (Z);                                         \
+    T a01 = aw >= ax ? aw : ax, a23 = ay >= az ? ay : az;                                           \
+    T big = nonzero ? (a01 >= a23 ? a01 : a23) : (T)1;                                              \
+    T pw = (W) / big, px = (X) / big, py = (Y) / big, pz = (Z) / big;                               \
+    T inv = nonzero ? (T)1 / SQRT(pw * pw + px * px + py * py + pz * pz) : (T)0;                    \
+    T uw = pw * inv, ux = px * inv, uy = py * inv, uz = pz * inv
+
 #define DEFINE_KERNELS(T, SUFFIX, TINY, SQRT)                                                        \
     CLONES static void q2m_forward_##SUFFIX(const Args *args, int64_t begin, int64_t end) {        \
         T v[4][BLOCK], r[9][BLOCK];                                                                 \
@@ -219,11 +247,7 @@ DEFINE_MOVES(double, f64)
             const int cnt = (int)(end - base < BLOCK ? end - base : BLOCK);                         \
             gather4_##SUFFIX(v, (const T *)args->a, args->sa, base, cnt);                           \
             for (int j = 0; j < cnt; ++j) {                                                         \
-                T n2 = w[j] * w[j] + x[j] * x[j] + y[j] * y[j] + z[j] * z[j];                       \
-                /* the zero quaternion (and NaN) takes 1/|q| = 0: the identity (NaN stays NaN); */ \
-                /* the discarded 1/sqrt(0) = inf is never used in a product */                      \
-                T inv = n2 >= TINY ? (T)1 / SQRT(n2) : (T)0;                                        \
-                T uw = w[j] * inv, ux = x[j] * inv, uy = y[j] * inv, uz = z[j] * inv;               \
+                UNIT(T, TINY, SQRT, w[j], x[j], y[j], z[j]);                                        \
                 T x2 = (T)2 * ux, y2 = (T)2 * uy, z2 = (T)2 * uz;                                   \
                 T xx = x2 * ux, yy = y2 * uy, zz = z2 * uz;                                         \
                 T xy = x2 * uy, xz = x2 * uz, yz = y2 * uz;                                         \
@@ -231,6 +255,10 @@ DEFINE_MOVES(double, f64)
                 r[0][j] = (T)1 - (yy + zz), r[1][j] = xy - wz, r[2][j] = xz + wy;                   \
                 r[3][j] = xy + wz, r[4][j] = (T)1 - (xx + zz), r[5][j] = yz - wx;                   \
                 r[6][j] = xz - wy, r[7][j] = yz + wx, r[8][j] = (T)1 - (xx + yy);                   \
+                /* a non-finite component makes the whole row NaN (diffquat._backend.nonfinite_rows); */ \
+                /* selects, which the compiler turns into blends */                                 \
+                const int ok = FINITE4(w[j], x[j], y[j], z[j]);                                     \
+                for (int e = 0; e < 9; ++e) r[e][j] = ok ? r[e][j] : (T)NAN;                        \
             }                                                                                       \
             scatter9_##SUFFIX((T *)args->out + 9 * base, r, cnt);                                   \
         }                                                                                           \
@@ -248,9 +276,7 @@ DEFINE_MOVES(double, f64)
             gather4_##SUFFIX(v, (const T *)args->a, args->sa, base, cnt);                           \
             gather9_##SUFFIX(g, (const T *)args->b, args->sb, base, cnt);                           \
             for (int j = 0; j < cnt; ++j) {                                                         \
-                T n2 = w[j] * w[j] + x[j] * x[j] + y[j] * y[j] + z[j] * z[j];                       \
-                T inv = n2 >= TINY ? (T)1 / SQRT(n2) : (T)0;                                        \
-                T uw = w[j] * inv, ux = x[j] * inv, uy = y[j] * inv, uz = z[j] * inv;               \
+                UNIT(T, TINY, SQRT, w[j], x[j], y[j], z[j]);                                        \
                 T g00 = g[0][j], g01 = g[1][j], g02 = g[2][j];                                      \
                 T g10 = g[3][j], g11 = g[4][j], g12 = g[5][j];                                      \
                 T g20 = g[6][j], g21 = g[7][j], g22 = g[8][j];                                      \
@@ -262,7 +288,7 @@ DEFINE_MOVES(double, f64)
                 T gy = wy * uw + xy * ux + yz * uz + (T)2 * (g11 - trace) * uy;                     \
                 T gz = wz * uw + xz * ux + yz * uy + (T)2 * (g22 - trace) * uz;                     \
                 T radial = uw * gw + ux * gx + uy * gy + uz * gz;                                   \
-                T s = (T)2 * inv;                                                                   \
+                T s = (T)2 * (inv / big);                                                           \
                 rw[j] = s * (gw - radial * uw), rx[j] = s * (gx - radial * ux);                     \
                 ry[j] = s * (gy - radial * uy), rz[j] = s * (gz - radial * uz);                     \
             }                                                                                       \
@@ -279,11 +305,13 @@ DEFINE_MOVES(double, f64)
             const int cnt = (int)(end - base < BLOCK ? end - base : BLOCK);                         \
             gather9_##SUFFIX(m, (const T *)args->a, args->sa, base, cnt);                           \
             for (int j = 0; j < cnt; ++j) {                                                         \
-                T m00 = m[0][j], m01 = m[1][j], m02 = m[2][j];                                      \
-                T m10 = m[3][j], m11 = m[4][j], m12 = m[5][j];                                      \
-                T m20 = m[6][j], m21 = m[7][j], m22 = m[8][j];                                      \
-                T t0 = (T)1 + m00 + m11 + m22, t1 = (T)1 + m00 - m11 - m22;                         \
-                T t2 = (T)1 - m00 + m11 - m22, t3 = (T)1 - m00 - m11 + m22;                         \
+                /* a quarter of the matrix (exact): sums of four quarters cannot overflow */       \
+                const T h = (T)0.25;                                                                \
+                T m00 = h * m[0][j], m01 = h * m[1][j], m02 = h * m[2][j];                          \
+                T m10 = h * m[3][j], m11 = h * m[4][j], m12 = h * m[5][j];                          \
+                T m20 = h * m[6][j], m21 = h * m[7][j], m22 = h * m[8][j];                          \
+                T t0 = h + m00 + m11 + m22, t1 = h + m00 - m11 - m22;                               \
+                T t2 = h - m00 + m11 - m22, t3 = h - m00 - m11 + m22;                               \
                 T wx = m21 - m12, wy = m02 - m20, wz = m10 - m01;                                   \
                 T xy = m01 + m10, xz = m02 + m20, yz = m12 + m21;                                   \
                 /* _core._m2q_choice: the larger pair, then the larger of it, ties to the lower */ \
@@ -293,12 +321,19 @@ DEFINE_MOVES(double, f64)
                 T x = use01 ? (use0 ? wx : t1) : (use2 ? xy : xz);                                  \
                 T y = use01 ? (use0 ? wy : xy) : (use2 ? t2 : yz);                                  \
                 T z = use01 ? (use0 ? wz : xz) : (use2 ? yz : t3);                                  \
-                /* |c| >= the largest pivot >= 1: the division is always safe */                    \
+                /* _core._m2q_unit: divided by the largest component (>= the chosen pivot >= 1/4), */ \
+                /* so that the squares cannot overflow; the scaled norm lies in [1, 2] */          \
+                T aw = w < 0 ? -w : w, ax = x < 0 ? -x : x, ay = y < 0 ? -y : y, az = z < 0 ? -z : z; \
+                T a01 = aw >= ax ? aw : ax, a23 = ay >= az ? ay : az;                               \
+                T big = a01 >= a23 ? a01 : a23;                                                     \
+                w = w / big, x = x / big, y = y / big, z = z / big;                                 \
                 T inv = (T)1 / SQRT(w * w + x * x + y * y + z * z);                                 \
                 /* _core._negative_canonical, with bitwise operators: no branches */               \
                 int negative = (w < 0) |                                                            \
                                ((w == 0) & ((x < 0) | ((x == 0) & ((y < 0) | ((y == 0) & (z < 0)))))); \
                 inv = negative ? -inv : inv;                                                        \
+                /* a non-finite entry makes the whole row NaN (diffquat._backend.nonfinite_rows) */ \
+                inv = FINITE9(m, j) ? inv : (T)NAN;                                                 \
                 rw[j] = w * inv, rx[j] = x * inv, ry[j] = y * inv, rz[j] = z * inv;                 \
             }                                                                                       \
             scatter4_##SUFFIX((T *)args->out + 4 * base, r, cnt);                                   \
@@ -609,7 +644,7 @@ static PyObject *xla_handlers(PyObject *self, PyObject *unused) {
 
 static PyMethodDef methods[] = {
     {"q2m_forward", (PyCFunction)(void (*)(void))q2m_forward, METH_FASTCALL,
-     "quaternion_to_matrix forward over raw buffers (see diffquat/torch/_fused.py)."},
+     "quaternion_to_matrix forward over raw buffers (see diffquat/torch/_cpu.py)."},
     {"q2m_backward", (PyCFunction)(void (*)(void))q2m_backward, METH_FASTCALL,
      "quaternion_to_matrix backward over raw buffers."},
     {"m2q_forward", (PyCFunction)(void (*)(void))m2q_forward, METH_FASTCALL,
@@ -631,5 +666,17 @@ static struct PyModuleDef module = {
 
 PyMODINIT_FUNC PyInit__kernels(void) {
     xla_threads = allowed_processors();
-    return PyModule_Create(&module);
+    PyObject *m = PyModule_Create(&module);
+    if (m == NULL) return NULL;
+#if defined(DIFFQUAT_PORTABLE)
+    const long portable = 1;
+#else
+    const long portable = 0;
+#endif
+    /* PORTABLE: 1 for the scalar build of the tests, 0 for the installed one */
+    if (PyModule_AddIntConstant(m, "PORTABLE", portable) < 0) {
+        Py_DECREF(m);
+        return NULL;
+    }
+    return m;
 }
