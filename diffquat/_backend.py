@@ -1,12 +1,29 @@
 """What binds the core math to one backend: validation, dtype handling and error messages, written once.
 
 Each backend module builds one :class:`Backend` and calls core functions through it. Everything here
-reads only static information (types, dtypes, shapes), so it traces cleanly under ``torch.compile``
-and ``jax.jit``; value-level edge cases are the core's business and never raise.
+reads only static information (types, dtypes, shapes), so it traces cleanly under ``torch.compile``,
+``torch.jit.trace``, ``torch.export`` and ``jax.jit``; value-level edge cases are the core's business
+and never raise.
+
+The rules, the same on every backend:
+
+- Arguments are converted as the framework converts them (NumPy and JAX accept array-likes, integer
+  ones included; torch asks for tensors, as torch's own functions do, except for the scalar arguments
+  that a Python number may stand for, such as ``quaternion_slerp``'s ``t``).
+- The result dtype is the framework's own promotion of the floating arguments (``np.result_type``,
+  ``jnp.result_type``, torch's type promotion, Python numbers weak); integer and boolean arguments
+  alone give the framework's default floating dtype, as ``sin`` does. Complex and non-numeric
+  arguments raise ``TypeError`` naming the function and the argument.
+- Half precision (float16, bfloat16) is computed in float32 and returned in its dtype.
+- A wrong trailing shape, or batch shapes that do not broadcast, raise ``ValueError`` naming the
+  function, the arguments and their shapes, from static shapes only.
+- A non-finite row: any NaN or infinite entry in the input rows of one batch element makes every
+  entry of that element's output NaN; the other elements are unaffected (see :func:`nonfinite_rows`).
 """
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
@@ -32,6 +49,18 @@ def matches(shape: tuple[int, ...], trailing: tuple[int, ...]) -> bool:
     return all(t == -1 or s == t for s, t in zip(tail, trailing, strict=True))
 
 
+def broadcasts(shapes: list[tuple[int, ...]]) -> bool:
+    """Whether batch shapes broadcast against each other (NumPy's rule, from the right)."""
+    rank = max((len(s) for s in shapes), default=0)
+    for k in range(1, rank + 1):
+        sizes = [s[-k] for s in shapes if len(s) >= k]
+        # ``== 1`` and ``==`` only (see ``matches``): symbolic sizes under torch.compile compare so.
+        big = [n for n in sizes if not n == 1]  # noqa: SIM201
+        if any(not n == big[0] for n in big[1:]):  # noqa: SIM201
+            return False
+    return True
+
+
 def shape_tuple(shape: int | tuple[int, ...] | list[int]) -> tuple[int, ...]:
     """A batch shape given as an int or a sequence of ints, as a tuple."""
     return (int(shape),) if isinstance(shape, int) else tuple(int(n) for n in shape)
@@ -47,66 +76,160 @@ def documented(core_fn: Callable[..., Any]) -> Callable[[F], F]:
     return attach
 
 
+def _match_rank(xp: Any, a: Any, rank: int) -> Any:
+    # jax (with rank promotion set to "raise") refuses to broadcast across ranks: unit axes first.
+    return xp.reshape(a, (1,) * (rank - a.ndim) + tuple(a.shape)) if a.ndim < rank else a
+
+
+def nonfinite_rows(xp: Any, out: Any, arrays: list[tuple[Any, tuple[int, ...]]]) -> Any:
+    """``out`` with every batch element whose input rows hold a NaN or an infinity set to NaN.
+
+    ``arrays`` are the inputs with their registered trailing shapes; their batch shapes broadcast to
+    ``out``'s batch shape, and the rest of ``out``'s dimensions are one element's output. Why a rule
+    of its own: left to the arithmetic, a NaN reaches some entries of a row and not others (a matrix entry the
+    selected candidate does not read), and ``inf`` turns into NaN or 0 depending on the path, so each
+    path would document its own result. This one is a selection (no arithmetic on the bad values
+    outside their row), so nothing leaks into other rows, and its derivative is the identity on the
+    good rows and 0 from the output of the bad ones."""
+    bad = None
+    for x, trailing in arrays:
+        b = ~xp.isfinite(x)
+        for _ in trailing:
+            b = xp.any(b, axis=-1)
+        if bad is None:
+            bad = b
+        else:
+            rank = max(bad.ndim, b.ndim)
+            bad = _match_rank(xp, bad, rank) | _match_rank(xp, b, rank)
+    assert bad is not None
+    return xp.where(xp.reshape(bad, tuple(bad.shape) + (1,) * (out.ndim - bad.ndim)), xp.nan, out)
+
+
 @dataclass(frozen=True)
 class Backend:
     """One backend's primitives that the array namespace does not share.
 
     Attributes:
         xp: the array namespace the core runs on (``numpy``, ``torch`` or ``jax.numpy``).
-        convert: turns a user argument into the backend's array, or raises ``TypeError``.
-        is_floating: whether a dtype is a floating-point dtype the library accepts.
+        convert: ``(fname, argname, x, scalar)`` -> the backend's array for a user argument (a Python
+            number stays as it is where ``scalar`` says it may stand for the argument), or raises
+            ``TypeError``.
+        is_floating: whether a dtype is a real floating-point dtype.
+        is_integral: whether a dtype is an integer or boolean dtype (converted to a floating one).
+        result_type: the framework's promotion of the converted arguments (arrays and Python numbers).
+        default_float: the framework's default floating dtype (of an integer argument).
         astype: casts an array to a dtype.
+        scalar: ``(value, dtype, like)`` -> a 0-dimensional array of a Python number, on the device of
+            the array ``like`` (or None).
         float32: the backend's float32 dtype, the compute dtype of half-precision input.
+        guard: a context manager around every computation (torch: autocast off, so that the core
+            computes in the dtype chosen here, not in the autocast dtype).
+        static: a context manager around the checks of shapes (torch: under ``torch.jit.trace``
+            sizes are traced tensors, and each comparison of one warns that it is read as a constant,
+            which for these checks is what is meant).
     """
 
     xp: Any
-    convert: Callable[[str, str, Any], Any]
+    convert: Callable[[str, str, Any, bool], Any]
     is_floating: Callable[[Any], bool]
+    is_integral: Callable[[Any], bool]
+    result_type: Callable[[list[Any]], Any]
+    default_float: Callable[[], Any]
     astype: Callable[[Any, Any], Any]
+    scalar: Callable[[float, Any, Any], Any]
     float32: Any
+    guard: Callable[[Any], contextlib.AbstractContextManager[Any]] = lambda x: contextlib.nullcontext()
+    static: Callable[[], contextlib.AbstractContextManager[Any]] = contextlib.nullcontext
 
     def compute_dtype(self, dtype: Any) -> Any:
         # float16 and bfloat16 (and anything narrower) are computed in float32: the epsilons and
         # products of the core would flush to zero or overflow in 16 bits.
         return self.float32 if dtype.itemsize < 4 else dtype
 
-    def validate(self, fname: str, *arrays: Any) -> list[Any]:
-        """Convert and check every array argument of core function ``fname`` against ``SHAPES``.
-        An optional array argument passed as ``None`` stays ``None``."""
-        checked: list[Any] = []
-        for (argname, trailing), raw in zip(SHAPES[fname].items(), arrays, strict=True):
+    def validate(self, fname: str, *arrays: Any) -> tuple[list[Any], Any]:
+        """Convert and check every array argument of core function ``fname`` against ``SHAPES``, and
+        cast them to their promoted dtype, which is returned beside them. An optional array argument
+        passed as ``None`` stays ``None``."""
+        with self.static():
+            return self._validate(fname, arrays)
+
+    def _validate(self, fname: str, arrays: tuple[Any, ...]) -> tuple[list[Any], Any]:
+        registry = SHAPES[fname]
+        converted: list[Any] = []
+        for (argname, trailing), raw in zip(registry.items(), arrays, strict=True):
             if raw is None:
-                checked.append(None)
+                converted.append(None)
                 continue
-            x = self.convert(fname, argname, raw)
-            if not self.is_floating(x.dtype):
-                raise TypeError(f"{fname}: expected {argname} with a floating-point dtype, got {x.dtype}")
+            x = self.convert(fname, argname, raw, trailing == ())
+            if isinstance(x, int | float) and not isinstance(x, bool):
+                converted.append(x)  # a Python number for a scalar argument: weak in the promotion
+                continue
+            if not (self.is_floating(x.dtype) or self.is_integral(x.dtype)):
+                raise TypeError(
+                    f"{fname}: expected {argname} with a real floating-point (or integer) dtype, "
+                    f"got {x.dtype}"
+                )
             shape = tuple(x.shape)
             if not matches(shape, trailing):
                 raise ValueError(
                     f"{fname}: expected {argname} of shape {format_shape(trailing)}, got shape {shape}"
                 )
-            checked.append(x)
-        dtypes = {x.dtype for x in checked if x is not None}
-        if len(dtypes) > 1:
-            pairs = zip(SHAPES[fname], checked, strict=True)
-            names = ", ".join(f"{a}: {x.dtype}" for a, x in pairs if x is not None)
-            raise TypeError(f"{fname}: expected all arrays to have one dtype, got {names}")
-        return checked
+            converted.append(x)
+        present = [x for x in converted if x is not None]
+        try:
+            dtype = self.result_type(present)
+        except Exception as error:  # e.g. jax's strict promotion refusing float32 with float64
+            names = ", ".join(f"{a}: {_dtype_of(x)}" for a, x in zip(registry, converted, strict=True))
+            raise TypeError(f"{fname}: the arguments' dtypes do not promote ({names}): {error}") from error
+        if not self.is_floating(dtype):
+            dtype = self.default_float()
+        checked = [None if x is None else self.array_of(x, dtype, like=present) for x in converted]
+        named = [(a, t, x) for (a, t), x in zip(registry.items(), checked, strict=True) if x is not None]
+        # Every -1 of a registered shape is one size N (a number of points), the same in every argument.
+        sizes = [(a, tuple(x.shape)[x.ndim - len(t) + t.index(-1)]) for a, t, x in named if -1 in t]
+        if any(not n == sizes[0][1] for _, n in sizes[1:]):  # noqa: SIM201
+            names = ", ".join(f"{a}: shape {tuple(x.shape)}" for a, _, x in named)
+            raise ValueError(f"{fname}: expected the same number of points N in every argument, got {names}")
+        if len(named) > 1:
+            batches = [tuple(x.shape)[: x.ndim - len(t)] for _, t, x in named]
+            if not broadcasts(batches):
+                names = ", ".join(f"{a}: shape {tuple(x.shape)}" for a, _, x in named)
+                raise ValueError(f"{fname}: expected batch shapes that broadcast, got {names}")
+        return checked, dtype
 
-    def __call__(self, core_fn: Callable[..., Any], *arrays: Any, **options: Any) -> Any:
-        """Validate ``arrays``, run ``core_fn`` in the compute dtype, return in the input dtype."""
-        checked = self.validate(core_fn.__name__, *arrays)
-        dtype = checked[0].dtype
+    def array_of(self, x: Any, dtype: Any, like: list[Any]) -> Any:
+        """``x`` as an array of ``dtype`` (a Python number on the device of the arrays in ``like``)."""
+        if isinstance(x, int | float):
+            return self.scalar(x, dtype, next((a for a in like if not isinstance(a, int | float)), None))
+        return x if x.dtype == dtype else self.astype(x, dtype)
+
+    def __call__(
+        self,
+        core_fn: Callable[..., Any],
+        *arrays: Any,
+        choose: Callable[[Any], Callable[..., Any]] | None = None,
+        **options: Any,
+    ) -> Any:
+        """Validate ``arrays``, run ``core_fn`` in the compute dtype, return in the promoted dtype.
+
+        ``choose(x)``, given the first validated array in its compute dtype, may name another
+        evaluation of the same map (a backend's fast path); one whose ``handles_nonfinite`` attribute
+        is true applies :func:`nonfinite_rows`'s rule itself."""
+        fname = core_fn.__name__
+        checked, dtype = self.validate(fname, *arrays)
         compute = self.compute_dtype(dtype)
-        if compute == dtype:
-            return core_fn(self.xp, *checked, **options)
-        out = core_fn(self.xp, *(x if x is None else self.astype(x, compute) for x in checked), **options)
-        if isinstance(out, tuple):
-            return tuple(self.astype(o, dtype) for o in out)
-        if core_fn.__name__ in _core.CANONICAL:
-            return self.cast_canonical(out, dtype, options.get("scalar_first", True))
-        return self.astype(out, dtype)
+        inputs = [x if x is None or x.dtype == compute else self.astype(x, compute) for x in checked]
+        fn = core_fn if choose is None else choose(inputs[0])
+        with self.guard(inputs[0]):
+            out = fn(self.xp, *inputs, **options)
+            if not getattr(fn, "handles_nonfinite", False):
+                rows = [(x, t) for x, t in zip(inputs, SHAPES[fname].values(), strict=True) if x is not None]
+                out = nonfinite_rows(self.xp, out, rows)
+            if compute == dtype:
+                return out
+            if fname in _core.CANONICAL:
+                return self.cast_canonical(out, dtype, options.get("scalar_first", True))
+            return self.astype(out, dtype)
 
     def cast_canonical(self, q: Any, dtype: Any, scalar_first: bool) -> Any:
         """Cast a canonical quaternion to ``dtype``, keeping it canonical: narrowing can round a tiny
@@ -114,3 +237,7 @@ class Backend:
         if dtype.itemsize >= q.dtype.itemsize:
             return self.astype(q, dtype)
         return _core.standardize_quaternion(self.xp, self.astype(q, dtype), scalar_first=scalar_first)
+
+
+def _dtype_of(x: Any) -> str:
+    return "None" if x is None else type(x).__name__ if isinstance(x, int | float) else str(x.dtype)

@@ -98,6 +98,17 @@ def matrix_to_rotation_6d(xp: Any, matrix: Any) -> Any:
 # 9D (Levinson et al., NeurIPS 2020): the special orthogonal Procrustes problem
 
 
+def _finite_or_zero(xp: Any, a: Any, trailing: int) -> Any:
+    """``a`` with every batch element that holds a NaN or an infinity replaced by zeros, before an SVD
+    or an eigendecomposition: LAPACK raises on such input (torch, NumPy) or iterates for minutes, for
+    the whole batch. Those elements' results are set to NaN afterwards (the backend's rule for
+    non-finite rows), so the zeros are never seen."""
+    finite = xp.isfinite(a)
+    for _ in range(trailing):
+        finite = xp.all(finite, axis=-1)
+    return xp.where(xp.reshape(finite, tuple(finite.shape) + (1,) * trailing), a, 0.0)
+
+
 def _transpose(xp: Any, m: Any) -> Any:
     return xp.swapaxes(m, -1, -2)
 
@@ -182,7 +193,7 @@ def special_procrustes(xp: Any, matrix: Any) -> Any:
     singular values equal) the derivative is regularised by ``sqrt(eps) * tr(R^T M)`` added to each
     denominator: finite and bounded by about ``2 |dL/dR| / (sqrt(eps) s_1)`` (by ``|dL/dR|`` for M = 0).
     """
-    u, _, vh = xp.linalg.svd(matrix)
+    u, _, vh = xp.linalg.svd(_finite_or_zero(xp, matrix, 2))
     # det(U V^T) = +-1; only its sign matters, and the product of the determinants is exact enough.
     flip = xp.linalg.det(u) * xp.linalg.det(vh) < 0
     last = xp.where(flip[..., None, None], -u[..., :, 2:3], u[..., :, 2:3])
@@ -247,7 +258,7 @@ def eigenvector_cotangent(xp: Any, a: Any, q: Any, cotangent: Any) -> Any:
 
 def smallest_eigenvector(xp: Any, a: Any) -> Any:
     """Unit eigenvector of the smallest eigenvalue of the symmetric matrix of ``a`` (sign: eigh's)."""
-    _, vectors = xp.linalg.eigh(_symmetric(xp, a))
+    _, vectors = xp.linalg.eigh(_symmetric(xp, _finite_or_zero(xp, a, 1)))
     return vectors[..., :, 0]
 
 
@@ -314,10 +325,8 @@ def fit_rotation(
         scipy's equivalent is ``Rotation.align_vectors(target, source, weights)`` (note the order).
         Its gradients are those of :func:`special_procrustes`.
     """
+    # The backend has checked that N is the same in every argument (diffquat._backend).
     n = source.shape[-2]
-    if target.shape[-2] != n or (weights is not None and weights.shape[-1] != n):
-        got = [tuple(source.shape), tuple(target.shape)] + ([] if weights is None else [tuple(weights.shape)])
-        raise ValueError(f"fit_rotation: expected the same number of points N in every argument, got {got}")
     shapes = [source.shape[:-2], target.shape[:-2]] + ([] if weights is None else [weights.shape[:-1]])
     batch = tuple(xp.broadcast_shapes(*shapes))
     source = xp.broadcast_to(source, (*batch, n, 3))

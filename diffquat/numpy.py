@@ -43,7 +43,11 @@ __all__ = [
 ]
 
 
-def _convert(fname: str, argname: str, x: Any) -> NDArray[Any]:
+def _convert(fname: str, argname: str, x: Any, scalar: bool) -> Any:
+    # A Python number for a scalar argument stays one: NumPy promotes it weakly (NEP 50), so a float32
+    # pair with ``t=0.5`` stays float32, which ``np.asarray(0.5)`` (a float64 array) would not.
+    if scalar and isinstance(x, int | float) and not isinstance(x, bool):
+        return x
     return np.asarray(x)
 
 
@@ -52,12 +56,24 @@ def _is_floating(dtype: Any) -> bool:
     return bool(np.issubdtype(dtype, np.floating)) or np.dtype(dtype).name == "bfloat16"
 
 
+def _is_integral(dtype: Any) -> bool:
+    return bool(np.issubdtype(dtype, np.integer)) or np.dtype(dtype) == np.bool_
+
+
 _B = Backend(
     xp=np,
     convert=_convert,
     is_floating=_is_floating,
+    is_integral=_is_integral,
+    result_type=lambda xs: np.result_type(*xs),
+    default_float=lambda: np.dtype(np.float64),
     astype=lambda x, dtype: x.astype(dtype),
+    scalar=lambda value, dtype, like: np.asarray(value, dtype=dtype),
     float32=np.dtype(np.float32),
+    # Values never raise or warn: the arithmetic of a non-finite row (inf * 0), of an overflowing
+    # intermediate that a rule then discards, or of the branch a ``where`` throws away is defined by the
+    # documented results, on NumPy as under jit.
+    guard=lambda x: np.errstate(all="ignore"),
 )
 
 

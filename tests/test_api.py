@@ -9,9 +9,10 @@ import sys
 
 import numpy as np
 import pytest
-from cases import NOT_IN_TABLE, OPS, Op, uniform_quaternions
+from cases import NOT_IN_TABLE, OPS, Op, only, uniform_quaternions
 from conftest import BACKENDS, Backend
 
+import diffquat.numpy  # noqa: F401  (importing a backend registers every op's shapes)
 from diffquat._backend import format_shape
 from diffquat._core import SHAPES
 
@@ -85,8 +86,10 @@ def test_bad_shape_raises_naming_the_function_and_the_shapes(op: Op, backend: Ba
                 assert fragment in str(err.value)
 
 
-def integer_array(backend: Backend, shape: tuple[int, ...]) -> object:
-    x = np.zeros(shape, dtype=np.int32)
+def typed(backend: Backend, x: np.ndarray, dtype: str) -> object:
+    """``x`` as the backend's array of a NumPy dtype name the table has no entry for (integers,
+    complex numbers)."""
+    x = np.asarray(x).astype(dtype)
     if backend.name == "torch":
         import torch
 
@@ -98,13 +101,94 @@ def integer_array(backend: Backend, shape: tuple[int, ...]) -> object:
     return x
 
 
-def test_non_floating_input_raises_type_error(op: Op, backend: Backend) -> None:
-    trailing = list(SHAPES[op.name].values())
-    for i, t in enumerate(trailing):
-        args = [backend.array(np.zeros((2, *concrete(s))), "float64") for s in trailing]
-        args[i] = integer_array(backend, (2, *concrete(t)))
-        with pytest.raises(TypeError, match=f"{op.name}.*floating"):
+def table_inputs(op: Op) -> list[np.ndarray]:
+    return list(op.inputs(uniform_quaternions(3, seed=0)))
+
+
+def test_complex_input_raises_type_error(op: Op, backend: Backend) -> None:
+    for i, argname in enumerate(list(SHAPES[op.name])[: len(table_inputs(op))]):
+        args: list[object] = [backend.array(x, "float64") for x in table_inputs(op)]
+        args[i] = typed(backend, table_inputs(op)[i], "complex64")
+        with pytest.raises(TypeError, match=rf"{op.name}: expected {argname} with a real floating-point"):
             op(backend.module, *args)
+
+
+DEFAULT_FLOAT = {"numpy": "float64", "torch": "float32", "jax": "float64"}  # jax: x64 is on (conftest)
+
+
+def test_integer_input_computes_in_the_default_float_dtype(op: Op, backend: Backend) -> None:
+    """Integer arguments are read as the framework's default floating dtype, as its ``sin`` reads them:
+    the result is that of the same numbers given as floats (NumPy and JAX also take them as nested
+    lists; torch, like its own functions, asks for tensors)."""
+    numbers = [np.round(3 * x) for x in table_inputs(op)]
+    default = DEFAULT_FLOAT[backend.name]
+    expected = op(backend.module, *(backend.array(x, default) for x in numbers))
+    out = op(backend.module, *(typed(backend, x, "int32") for x in numbers))
+    assert str(out.dtype).endswith(default)
+    # Equal to the last bits only: LAPACK's SVD and eigh (special_procrustes, fit_rotation, the 10D
+    # map) round differently depending on how their buffer is aligned in memory.
+    tol = {"float64": 1e-13, "float32": 1e-6}[default]
+    np.testing.assert_allclose(backend.to_numpy(out), backend.to_numpy(expected), rtol=0, atol=tol)
+    if backend.name != "torch":
+        lists = op(backend.module, *(x.astype(int).tolist() for x in numbers))
+        np.testing.assert_allclose(backend.to_numpy(lists), backend.to_numpy(expected), rtol=0, atol=tol)
+
+
+several_arrays = only(op=lambda op: len(SHAPES[op.name]) > 1)
+
+
+@several_arrays
+def test_mixed_float_dtypes_follow_the_framework_promotion(op: Op, backend: Backend) -> None:
+    """float32 beside float64 gives what the framework's own promotion gives (float64 on every backend;
+    jax's strict promotion mode, which the suite sets, refuses the pair: a TypeError naming the
+    function), computed in that dtype."""
+    inputs = table_inputs(op)
+    for i in range(len(inputs)):
+        mixed = [backend.array(x, "float32" if j == i else "float64") for j, x in enumerate(inputs)]
+        if backend.name == "jax":
+            import jax
+
+            with pytest.raises(TypeError, match=rf"{op.name}: the arguments' dtypes do not promote"):
+                op(backend.module, *mixed)
+            with jax.numpy_dtype_promotion("standard"):
+                out = op(backend.module, *mixed)
+        else:
+            out = op(backend.module, *mixed)
+        assert str(out.dtype).endswith("float64")
+        promoted = [backend.to_numpy(x) for x in mixed]  # the float32 values, exactly, in float64
+        again = op(backend.module, *(backend.array(x, "float64") for x in promoted))
+        # to the last bits: LAPACK's results depend on the alignment of its buffers
+        np.testing.assert_allclose(backend.to_numpy(out), backend.to_numpy(again), rtol=0, atol=1e-13)
+
+
+@several_arrays
+def test_batch_shapes_that_do_not_broadcast_raise_naming_the_arguments(op: Op, backend: Backend) -> None:
+    """One ValueError on every backend, from the static shapes, naming the function, every argument
+    and its shape (not whatever the arithmetic inside would raise)."""
+    trailing = SHAPES[op.name]
+    for i in range(len(trailing)):
+        shapes = [((3 if j == i else 2), *concrete(t)) for j, t in enumerate(trailing.values())]
+        args = [backend.array(np.ones(s), "float64") for s in shapes]
+        with pytest.raises(ValueError, match=rf"{op.name}: expected batch shapes that broadcast") as err:
+            op(backend.module, *args)
+        for argname, shape in zip(trailing, shapes, strict=True):
+            assert f"{argname}: shape {shape}" in str(err.value)
+
+
+def test_slerp_takes_a_python_number_for_t(backend: Backend) -> None:
+    """``t`` may be a Python number on every backend (a scalar, weak in the promotion: a float32 pair
+    stays float32), or an array whose shape broadcasts against the batch shapes of ``p`` and ``q``."""
+    p, q = uniform_quaternions(4, seed=1), uniform_quaternions(4, seed=2)
+    for dtype in ("float32", "float64"):
+        a, b = backend.array(p, dtype), backend.array(q, dtype)
+        out = backend.module.quaternion_slerp(a, b, 0.25)
+        assert str(out.dtype).endswith(dtype)
+        as_array = backend.module.quaternion_slerp(a, b, backend.array(np.full(4, 0.25), dtype))
+        np.testing.assert_array_equal(backend.to_numpy(out), backend.to_numpy(as_array))
+    # t of shape (2, 1) against p and q of batch shape (4,): a (2, 4) batch
+    t = backend.array(np.array([[0.25], [0.75]]), "float64")
+    out = backend.module.quaternion_slerp(backend.array(p, "float64"), backend.array(q, "float64"), t)
+    assert tuple(out.shape) == (2, 4, 4)
 
 
 def test_torch_backend_rejects_non_tensors() -> None:
@@ -114,12 +198,6 @@ def test_torch_backend_rejects_non_tensors() -> None:
         TypeError, match=r"quaternion_to_matrix: expected q to be a torch\.Tensor, got ndarray"
     ):
         dq.quaternion_to_matrix(uniform_quaternions(2, seed=0))
-
-
-def test_numpy_backend_accepts_lists_of_floats() -> None:
-    import diffquat.numpy as dq
-
-    np.testing.assert_allclose(dq.quaternion_to_matrix([1.0, 0.0, 0.0, 0.0]), np.eye(3))
 
 
 @pytest.mark.parametrize("name", list(BACKENDS))

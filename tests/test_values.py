@@ -207,3 +207,65 @@ def test_quaternion_to_matrix_gathered_form_is_the_same_map(backend: Backend, ca
         a = backend.to_numpy(_core.quaternion_to_matrix(xp, q, scalar_first=scalar_first))
         b = backend.to_numpy(_core.quaternion_to_matrix_gathered(xp, q, scalar_first=scalar_first))
         np.testing.assert_array_equal(b, a)
+
+
+def poisoned_batch(op: Op) -> tuple[list[np.ndarray], list[np.ndarray], list[int]]:
+    """The op's inputs for a batch of generic rotations, clean and with non-finite entries: for each
+    argument, one row with a NaN and one with an infinity (of either sign) in one of its entries,
+    each in a row of its own; the last two rows stay finite everywhere. Returns (clean, poisoned,
+    the poisoned rows)."""
+    n_args = len(op.inputs(uniform_quaternions(1, seed=0)))
+    n = 2 * n_args + 2
+    clean = [np.array(x) for x in op.inputs(uniform_quaternions(n, seed=3))]
+    poisoned = [x.copy() for x in clean]
+    for i, x in enumerate(poisoned):
+        rows = x.reshape(n, -1)  # a view of the (contiguous) copy, one row per batch element
+        rows[2 * i, -1] = np.nan
+        rows[2 * i + 1, 0] = np.inf if i % 2 == 0 else -np.inf
+    return clean, poisoned, list(range(2 * n_args))
+
+
+def test_nonfinite_rows_give_nan_rows_and_leave_the_others(op: Op, backend: Backend, dtype: str) -> None:
+    """A NaN or an infinity anywhere in an input row makes that row's whole output NaN, and only that
+    row's (the documented rule, the same on every backend and path: diffquat._backend.nonfinite_rows);
+    the finite rows give what they give without their neighbours."""
+    clean, poisoned, bad = poisoned_batch(op)
+    out = backend.to_numpy(op(backend.module, *(backend.array(x, dtype) for x in poisoned)))
+    expected = backend.to_numpy(op(backend.module, *(backend.array(x, dtype) for x in clean)))
+    assert np.all(np.isnan(out[bad]))
+    good = [k for k in range(len(out)) if k not in bad]
+    # Equal up to the rounding of the last bits: LAPACK (the SVD and eigh maps) rounds differently
+    # depending on how its buffer is aligned; every other op gives the very same numbers.
+    eps = float(np.finfo(np.float32 if dtype != "float64" else np.float64).eps)
+    scale = np.maximum(np.abs(expected[good]), 1.0)
+    np.testing.assert_allclose(out[good] / scale, expected[good] / scale, rtol=0, atol=4 * eps)
+
+
+@only(op=lambda op: op.name in ("matrix_to_quaternion", "matrix_to_axis_angle", "matrix_to_euler_angles"))
+def test_huge_finite_matrices_give_finite_results(op: Op, backend: Backend, dtype: str) -> None:
+    """Any finite matrix gives a finite unit quaternion, up to the largest finite number of the dtype
+    (once the squares of the candidate's components overflowed from ~1.8e19 in float32 and 1.3e154 in
+    float64, and (0, 0, 0, 0) came back, which later functions read as the identity), equal to the same
+    map evaluated in extended precision (NumPy's longdouble: nothing overflows there); and so the
+    conversions through it are finite."""
+    from diffquat import _core
+
+    largest = float(np.finfo(np.float16 if dtype == "float16" else np.float32).max)
+    largest = {"float64": 1e308, "bfloat16": 3.3e38}.get(dtype, largest)
+    rng = np.random.default_rng(4)
+    rotations = oracle_quaternion_to_matrix(uniform_quaternions(8, seed=4))
+    for factor in (1e10, 1e20, 1e160, largest / 1.01):
+        if factor > largest:
+            continue
+        with np.errstate(over="ignore"):  # entries past the largest finite number are clipped to it
+            matrices = np.concatenate([rotations, rng.normal(size=(4, 3, 3)), -np.eye(3)[None]]) * factor
+        matrices = np.clip(matrices, -largest, largest)
+        received = backend.to_numpy(backend.array(matrices, dtype))
+        out = backend.to_numpy(op(backend.module, backend.array(matrices, dtype)))
+        assert np.all(np.isfinite(out))
+        if op.name != "matrix_to_quaternion":
+            continue
+        np.testing.assert_allclose(np.linalg.norm(out, axis=-1), 1.0, rtol=0, atol=2 * VALUE_TOL[dtype])
+        with np.errstate(all="raise"):  # nothing may overflow in the reference
+            expected = _core.matrix_to_quaternion(np, received.astype(np.longdouble)).astype(np.float64)
+        assert max_error(out, expected, up_to_sign=True) <= VALUE_TOL[dtype]

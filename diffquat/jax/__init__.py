@@ -51,7 +51,10 @@ __all__ = [
 ]
 
 
-def _convert(fname: str, argname: str, x: Any) -> Array:
+def _convert(fname: str, argname: str, x: Any, scalar: bool) -> Any:
+    # A Python number for a scalar argument stays one, weakly typed in jax's promotion.
+    if scalar and isinstance(x, int | float) and not isinstance(x, bool):
+        return x
     return jnp.asarray(x)
 
 
@@ -59,7 +62,12 @@ _B = Backend(
     xp=XP,
     convert=_convert,
     is_floating=lambda dtype: bool(jnp.issubdtype(dtype, jnp.floating)),
+    is_integral=lambda dtype: bool(jnp.issubdtype(dtype, jnp.integer) or jnp.issubdtype(dtype, jnp.bool_)),
+    result_type=lambda xs: jnp.result_type(*xs),
+    # float64 where x64 is enabled, float32 otherwise: what jnp.sin makes of an integer array
+    default_float=lambda: jnp.dtype(jax.dtypes.canonicalize_dtype(jnp.float64)),
     astype=lambda x, dtype: x.astype(dtype),
+    scalar=lambda value, dtype, like: jnp.asarray(value, dtype=dtype),
     float32=jnp.dtype(jnp.float32),
 )
 
