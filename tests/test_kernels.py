@@ -1,13 +1,20 @@
 """The C kernels of ``quaternion_to_matrix`` and ``matrix_to_quaternion`` (diffquat/_kernels.c, bound
 for torch in diffquat/torch/_cpu.py and for jax in diffquat/jax/_xla.py): what the shared matrix,
-tests/test_fused.py and the jax tests do not already check through them.
+tests/test_paths.py and the jax tests do not already check through them.
 
 The shared matrix runs every case, dtype, gradient and transform through the public torch functions,
-which take the kernels for eager CPU tensors; tests/test_fused.py compares the kernels' Functions
-with the core at every edge case in float64, both storage orders, forward mode included. Here: that
-the extension is built at all (a silent fallback would hide it), float32 agreement, the strided
-inputs that the kernels read in place, batch shapes, the split over threads, which calls take
-them, and that the XLA handlers declare XLA's FFI structures as jaxlib's header does."""
+which take the kernels for eager CPU tensors; tests/test_paths.py checks each evaluation against a
+float64 reference and the derivatives' independence of the path. Here: that the extension is built at
+all (a silent fallback would hide it), the strided inputs that the kernels read in place, batch
+shapes, the split over threads, which calls take them, the portable (non-SIMD) build, and that the XLA
+handlers declare XLA's FFI structures as jaxlib's header does.
+
+CI runs these kernel tests twice: as built (on x86-64 with an AVX2 clone of every kernel, chosen at
+load time), and once more, in a subprocess, with a portable build of the same source that the
+compiler may not vectorise (``test_portable_build``): the suite must pass on any machine, and both
+builds must give the same numbers, bit for bit, since both perform the same IEEE operations in the
+same order (FMA contraction is off in both).
+"""
 
 from __future__ import annotations
 
@@ -25,20 +32,18 @@ from torch.autograd import forward_ad
 import diffquat
 import diffquat.torch as dq
 from diffquat import _core
-from diffquat.torch import _cpu, _fused
+from diffquat.torch import _cpu, _dispatch
 
 
 def test_the_extension_is_built() -> None:
     """pip builds the kernels wherever a C compiler is (pyproject.toml); on such a machine (CI's) a
-    failed build must fail here, not fall back silently to the slower pure-torch and XLA paths."""
-    import diffquat.jax
+    failed build must fail here, not fall back silently to the slower formula."""
     from diffquat import _kernels
 
-    assert diffquat.jax._xla is not None
-    assert _fused._cpu is _cpu
+    assert _dispatch._cpu is _cpu
     assert callable(_kernels.q2m_forward)
-    assert _fused.q2m_path(torch.zeros(4)) is _cpu.quaternion_to_matrix
-    assert _fused.m2q_path(torch.zeros(3, 3)) is _cpu.matrix_to_quaternion
+    assert _dispatch.quaternion_to_matrix(torch.zeros(4)) is _cpu.quaternion_to_matrix
+    assert _dispatch.matrix_to_quaternion(torch.zeros(3, 3)) is _cpu.matrix_to_quaternion
 
 
 def _quaternions(dtype: torch.dtype) -> torch.Tensor:
@@ -57,33 +62,6 @@ def _matrices(dtype: torch.dtype) -> torch.Tensor:
     noise = torch.randn(rot.shape, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
     arbitrary = torch.randn(9, 3, 3, generator=torch.Generator().manual_seed(6), dtype=torch.float64)
     return torch.cat([rot, rot + 0.05 * noise, arbitrary]).to(dtype)
-
-
-@pytest.mark.parametrize("scalar_first", [True, False])
-def test_float32_kernels_equal_the_core(scalar_first: bool) -> None:
-    """In float32 the kernels evaluate the core's operations in the core's order: values agree to
-    rounding, canonical signs exactly, and the gradients (away from the float32 range limits, where
-    the core's own autograd overflows) to rounding."""
-    order = [0, 1, 2, 3] if scalar_first else [1, 2, 3, 0]
-    q = _quaternions(torch.float32)
-    ours = _cpu.q2m_forward(q[..., order], scalar_first)
-    torch.testing.assert_close(ours, _core.quaternion_to_matrix(torch, q), rtol=0, atol=2e-7)
-    m = _matrices(torch.float32)
-    ours_q, core_q = _cpu.m2q_forward(m, scalar_first), _core.matrix_to_quaternion(torch, m)
-    torch.testing.assert_close(ours_q, core_q[..., order], rtol=0, atol=2e-7)
-    assert torch.equal(torch.sign(ours_q), torch.sign(core_q[..., order]))
-    unit = q[: -len(CASES_BY_NAME["norms"].quaternions("float64")) - 1]
-    for fn, core, x, stored in (
-        (dq.quaternion_to_matrix, _core.quaternion_to_matrix, unit, order),
-        (dq.matrix_to_quaternion, _core.matrix_to_quaternion, m, slice(None)),
-    ):
-        a, b = x.clone().requires_grad_(True), x.clone().requires_grad_(True)
-        out = fn(a[..., stored], scalar_first=scalar_first)
-        expected = core(torch, b[..., stored], scalar_first=scalar_first)
-        cot = torch.randn(out.shape, generator=torch.Generator().manual_seed(7))
-        (g_ours,) = torch.autograd.grad(out, a, cot)
-        (g_core,) = torch.autograd.grad(expected, b, cot)
-        torch.testing.assert_close(g_ours, g_core, rtol=1e-5, atol=1e-5)
 
 
 def _grad(fn: object, x: torch.Tensor, cot: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -175,8 +153,8 @@ def test_rows_split_over_threads(threads: int) -> None:
 
 def test_which_calls_take_the_kernels() -> None:
     """Plain tensors and parameters take the kernels: through the Function where a derivative can be
-    asked for (``requires_grad`` or a forward-mode dual tensor), directly where none can; a tensor
-    subclass with its own dispatch and ``torch.func`` transforms take the torch paths."""
+    asked for (``requires_grad`` or a forward-mode dual tensor), directly where none can (see
+    tests/test_paths.py for the calls that take the formula)."""
     q = torch.randn(5, 4, dtype=torch.float64)
     assert dq.quaternion_to_matrix(q).grad_fn is None
     param = torch.nn.Parameter(q.clone())
@@ -185,18 +163,6 @@ def test_which_calls_take_the_kernels() -> None:
         assert dq.quaternion_to_matrix(param).grad_fn is None
     m = dq.quaternion_to_matrix(q).requires_grad_(True)
     assert type(dq.matrix_to_quaternion(m).grad_fn).__name__ == "MatrixToQuaternionKernelBackward"
-
-    class Traced(torch.Tensor):
-        pass
-
-    assert not _cpu.usable(q.as_subclass(Traced))
-    assert _fused.q2m_path(q.as_subclass(Traced)) is not _cpu.quaternion_to_matrix
-
-    def path(t: torch.Tensor) -> torch.Tensor:
-        assert _fused.q2m_path(t) is not _cpu.quaternion_to_matrix
-        return dq.quaternion_to_matrix(t)
-
-    torch.func.vmap(path)(q)
 
 
 # Forward-mode AD goes through a torch module that still uses torch.jit.script.
@@ -244,6 +210,81 @@ def test_lazily_negated_views() -> None:
     assert torch._neg_view(m).is_neg()
     torch.testing.assert_close(dq.matrix_to_quaternion(torch._neg_view(m)), dq.matrix_to_quaternion(-m))
     torch.testing.assert_close(dq.quaternion_to_matrix(torch._neg_view(q)), dq.quaternion_to_matrix(-q))
+
+
+def _compiler() -> str | None:
+    return shutil.which(sysconfig.get_config_var("CC").split()[0]) or shutil.which("cc")
+
+
+def build_portable(directory: Path) -> Path:
+    """``diffquat/_kernels.c`` built as the extension module ``_kernels`` with ``DIFFQUAT_PORTABLE``
+    (no AVX2 clones, no SSE moves) and the compiler's vectorisers off: scalar code that any CPU the
+    compiler targets runs. The other flags are pyproject.toml's (FMA contraction off, as the core)."""
+    kernels = Path(diffquat.__file__).parent / "_kernels.c"
+    target = directory / ("_kernels" + sysconfig.get_config_var("EXT_SUFFIX"))
+    flags = ["-O2", "-fno-tree-vectorize", "-fno-tree-slp-vectorize", "-fno-math-errno", "-fno-trapping-math"]
+    command = [
+        _compiler() or "cc", "-shared", "-fPIC", *flags, "-ffp-contract=off", "-DDIFFQUAT_PORTABLE",
+        f"-I{sysconfig.get_paths()['include']}", str(kernels), "-o", str(target), "-lpthread",
+    ]  # fmt: skip
+    subprocess.run(command, check=True, capture_output=True, text=True)
+    return target
+
+
+def _all_kernels(module: object, dtype: torch.dtype) -> list[torch.Tensor]:
+    """Every kernel of ``module`` (an extension build) on every quaternion and matrix case, both
+    storage orders, through the Python entry points of _cpu.py with that build swapped in."""
+    q, m = _quaternions(dtype), _matrices(dtype)
+    gen = torch.Generator().manual_seed(14)
+    cot9 = torch.randn(len(q), 3, 3, generator=gen, dtype=torch.float64).to(dtype)
+    cot4 = torch.randn(len(m), 4, generator=gen, dtype=torch.float64).to(dtype)
+    outs = []
+    before = _cpu._kernels
+    _cpu._kernels = module  # type: ignore[assignment]
+    try:
+        for first in (True, False):
+            qm = _cpu.m2q_forward(m, first)
+            outs += [_cpu.q2m_forward(q, first), _cpu.q2m_backward(q, cot9, first), qm]
+            outs.append(_cpu.m2q_backward(m, qm, cot4, first))
+    finally:
+        _cpu._kernels = before
+    return outs
+
+
+def test_portable_build(tmp_path: Path) -> None:
+    """The portable build gives the installed build's numbers bit for bit (the same IEEE operations in
+    the same order, vectorised or not), and the kernel tests pass again in a process that loads it
+    (tests/conftest.py swaps it in when DIFFQUAT_TEST_KERNELS names it)."""
+    import importlib.util
+    import os
+    import sys
+
+    if _compiler() is None:
+        pytest.skip("no C compiler")
+    path = build_portable(tmp_path)
+    spec = importlib.util.spec_from_file_location("_kernels", path)
+    assert spec is not None and spec.loader is not None
+    portable = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(portable)
+    assert portable.PORTABLE == 1
+    for dtype in (torch.float32, torch.float64):
+        for a, b in zip(_all_kernels(portable, dtype), _all_kernels(_cpu._kernels, dtype), strict=True):
+            torch.testing.assert_close(a, b, rtol=0, atol=0, equal_nan=True)
+    tests = Path(__file__).parent
+    selection = [
+        str(tests / "test_kernels.py"),
+        "-k", "not portable_build and not xla_declarations",
+        f"{tests / 'test_paths.py'}::test_each_evaluation_against_a_float64_reference",
+        f"{tests / 'test_paths.py'}::test_kernel_functions_pass_gradcheck_both_modes",
+        f"{tests / 'test_paths.py'}::test_quaternion_to_matrix_second_derivatives_at_small_norms",
+    ]  # fmt: skip
+    env = {**os.environ, "DIFFQUAT_TEST_KERNELS": str(path)}
+    done = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *selection],
+        env=env, capture_output=True, text=True, timeout=600, cwd=tests.parent,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stdout[-4000:] + done.stderr[-2000:]
+    assert "passed" in done.stdout
 
 
 # The fields of XLA's FFI structures that diffquat/_kernels.c reads or writes: its structure, the

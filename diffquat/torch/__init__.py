@@ -3,15 +3,19 @@ see :mod:`diffquat` for the conventions. Dtype and device of the input are prese
 
 from __future__ import annotations
 
+import contextlib
+import functools
+import warnings
 from typing import Any
 
 import torch
 from torch import Tensor
+from torch.jit._trace import TracerWarning, is_tracing
 
 from .. import _algebra, _core, _euler
 from .. import _representations as _rep
 from .._backend import Backend, documented, shape_tuple
-from . import _fused
+from . import _dispatch
 from ._custom import custom_derivative
 
 __all__ = [
@@ -45,42 +49,90 @@ __all__ = [
 ]
 
 
-def _convert(fname: str, argname: str, x: Any) -> Tensor:
-    # No silent conversion from lists or numpy arrays: it would pick a device and a dtype for the user.
-    if not isinstance(x, Tensor):
-        raise TypeError(f"{fname}: expected {argname} to be a torch.Tensor, got {type(x).__name__}")
-    return x
+def _convert(fname: str, argname: str, x: Any, scalar: bool) -> Any:
+    # No silent conversion from lists or numpy arrays: it would pick a device and a dtype for the user
+    # (torch's own functions ask for tensors too). A Python number may stand for a scalar argument
+    # (slerp's ``t``), weak in the promotion as in torch's own binary operations.
+    if isinstance(x, Tensor):
+        return x
+    if scalar and isinstance(x, int | float) and not isinstance(x, bool):
+        return x
+    allowed = "a torch.Tensor or a Python number" if scalar else "a torch.Tensor"
+    raise TypeError(f"{fname}: expected {argname} to be {allowed}, got {type(x).__name__}")
+
+
+def _result_type(xs: list[Any]) -> torch.dtype:
+    """torch's promotion of floating arguments: tensors with dimensions decide over 0-dimensional ones,
+    and those over Python numbers (``torch.result_type``'s rule, over any number of arguments);
+    integer and boolean tensors, lower in the category order, decide nothing."""
+    floats = [x for x in xs if isinstance(x, Tensor) and x.dtype.is_floating_point]
+    pool = [x.dtype for x in floats if x.ndim > 0] or [x.dtype for x in floats]
+    return functools.reduce(torch.promote_types, pool) if pool else torch.get_default_dtype()
+
+
+def _without_autocast(x: Tensor) -> contextlib.AbstractContextManager[Any]:
+    """Autocast off around the core: under ``torch.autocast`` its matrix products and solves would run
+    in the autocast dtype (bfloat16 for a float32 input), and the backward of a float32 result would
+    then meet bfloat16 tensors. The Backend has already chosen the compute dtype."""
+    device = x.device.type
+    if torch.is_autocast_enabled(device):
+        return torch.autocast(device, enabled=False)
+    return contextlib.nullcontext()
+
+
+class _QuietTracer(warnings.catch_warnings):
+    """Under ``torch.jit.trace`` sizes are traced tensors, and comparing one in a shape check warns that
+    the result is read as a constant, which for a static check is what is meant (see _backend)."""
+
+    def __enter__(self) -> None:
+        super().__enter__()
+        warnings.simplefilter("ignore", TracerWarning)
+
+
+def _static_shapes() -> contextlib.AbstractContextManager[Any]:
+    tracing = is_tracing()  # type: ignore[no-untyped-call]
+    return _QuietTracer() if tracing else contextlib.nullcontext()
 
 
 _B = Backend(
     xp=torch,
     convert=_convert,
     is_floating=lambda dtype: dtype.is_floating_point,
+    is_integral=lambda dtype: not (dtype.is_floating_point or dtype.is_complex),
+    result_type=_result_type,
+    default_float=torch.get_default_dtype,
     astype=lambda x, dtype: x.to(dtype),
+    scalar=lambda value, dtype, like: torch.tensor(value, dtype=dtype, device=like.device),
     float32=torch.float32,
+    guard=_without_autocast,
+    static=_static_shapes,
 )
 
 
 @documented(_core.quaternion_to_matrix)
 def quaternion_to_matrix(q: Tensor, *, scalar_first: bool = True) -> Tensor:
-    # The fused Function, the Triton kernels or the core formula: see _fused.q2m_path.
-    return _B(_fused.q2m_path(q), q, scalar_first=scalar_first)
+    # The formula, the C kernels or the Triton kernels: see _dispatch.py.
+    return _B(_core.quaternion_to_matrix, q, choose=_dispatch.quaternion_to_matrix, scalar_first=scalar_first)
 
 
 @documented(_core.matrix_to_quaternion)
 def matrix_to_quaternion(matrix: Tensor, *, scalar_first: bool = True) -> Tensor:
-    return _B(_fused.m2q_path(matrix), matrix, scalar_first=scalar_first)
+    return _B(
+        _core.matrix_to_quaternion, matrix, choose=_dispatch.matrix_to_quaternion, scalar_first=scalar_first
+    )
 
 
 def _quaternion_to_matrix(xp: Any, q: Tensor, *, scalar_first: bool = True) -> Tensor:
-    """The conversion step of the composites (see ``_core.Conversion``), by the same path as
-    :func:`quaternion_to_matrix` for this call."""
-    return _fused.q2m_path(q)(xp, q, scalar_first=scalar_first)
+    """The conversion step of the composites (see ``_core.Conversion``), by the evaluation
+    :func:`quaternion_to_matrix` would take for it."""
+    r: Tensor = _dispatch.quaternion_to_matrix(q)(xp, q, scalar_first=scalar_first)
+    return r
 
 
 def _matrix_to_quaternion(xp: Any, matrix: Tensor, *, scalar_first: bool = True) -> Tensor:
-    """The conversion step of the composites, by the same path as :func:`matrix_to_quaternion`."""
-    return _fused.m2q_path(matrix)(xp, matrix, scalar_first=scalar_first)
+    """The conversion step of the composites, by the evaluation :func:`matrix_to_quaternion` would take."""
+    q: Tensor = _dispatch.matrix_to_quaternion(matrix)(xp, matrix, scalar_first=scalar_first)
+    return q
 
 
 @documented(_core.standardize_quaternion)

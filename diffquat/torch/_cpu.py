@@ -4,18 +4,14 @@
 An eager call then costs one kernel (and, where autograd records, one ``autograd.Function``)
 instead of the core's ~40 elementwise operations forward and as many backward: at small N that is
 the dispatch cost, and at large N the memory traffic of their temporaries. The kernels compute what
-the core formulas compute, operation by operation (the tests compare them at every edge case), read
-strided inputs in place (an expanded cotangent, scalar-last storage, a transposed matrix) and write
-contiguous outputs.
+the core formulas compute, operation by operation; the tests compare both with a float64 reference.
+They read strided inputs in place (an expanded cotangent, scalar-last storage, a transposed matrix)
+and write contiguous outputs, and apply the non-finite row rule themselves (``handles_nonfinite``).
 
-The backward kernels are not differentiable again: where a double backward is being recorded
-(``create_graph=True``), the backward evaluates the differentiable torch formula instead. Forward
-mode (``jvp``) takes the torch formula of :mod:`._fused`. ``torch.func`` transforms take the
-Functions of :mod:`._fused`, which have vmap rules; ``torch.compile`` takes the core formula (see
-``_fused.q2m_path``).
-
-Only imported where the extension was built (``pyproject.toml`` builds it wherever a C compiler is
-found); without it the dispatch keeps the pure-torch paths of :mod:`._fused`.
+Every other derivative is the core's formula in differentiable torch operations: forward mode
+(``jvp``) the core's tangents, and where a double backward is being recorded (``create_graph=True``)
+the core's cotangents, which then differentiate again. So every order of derivative is the core's,
+with the core's choice of pivot. :mod:`._dispatch` calls this module only in plain eager mode.
 """
 
 from __future__ import annotations
@@ -26,26 +22,9 @@ import torch
 from torch import Tensor
 from torch.autograd import forward_ad
 
-from .. import _kernels
-from . import _fused
+from .. import _core, _kernels
 
 _DTYPE = {torch.float32: 0, torch.float64: 1}
-
-
-def usable(x: Any) -> bool:
-    """A dense CPU tensor whose buffer holds its values (a plain tensor or a parameter, not a subclass
-    with its own dispatch such as the fake tensors of tracing, nor a lazily negated or conjugated
-    view, whose buffer holds the values before the sign change), outside ``torch.func`` transforms
-    (a kernel has no vmap rule). Half precision counts: the backend computes it in float32 before the
-    kernel sees it."""
-    return (
-        type(x) in (Tensor, torch.nn.Parameter)
-        and x.device.type == "cpu"
-        and x.layout == torch.strided
-        and not x.is_neg()
-        and not x.is_conj()
-        and not torch._C._are_functorch_transforms_active()
-    )
 
 
 def _records(x: Tensor) -> bool:
@@ -111,14 +90,33 @@ def m2q_backward(matrix: Tensor, q: Tensor, grad: Tensor, first: bool) -> Tensor
 
 
 def _plain(grad: Tensor, like: Tensor) -> bool:
-    """Whether a cotangent can go to a kernel: a dense tensor of ``like``'s dtype and device (autograd
-    hands the output's; anything else takes the torch formula, never a raw pointer)."""
-    return usable(grad) and grad.dtype == like.dtype
+    """Whether a cotangent can go to a kernel: a dense plain tensor of ``like``'s dtype on the CPU
+    (autograd hands the output's; anything else takes the torch formula, never a raw pointer)."""
+    return (
+        type(grad) is Tensor
+        and grad.device.type == "cpu"
+        and grad.dtype == like.dtype
+        and grad.layout == torch.strided
+        and not grad.is_neg()
+        and not grad.is_conj()
+    )
+
+
+def _first(q: Tensor, first: bool) -> Tensor:
+    """A quaternion in storage order ``first`` as scalar first (the core's derivative formulas read
+    that order)."""
+    return q if first else _core.xyzw_to_wxyz(torch, q)
+
+
+def _stored(q: Tensor, first: bool) -> Tensor:
+    """A scalar-first quaternion in storage order ``first``."""
+    return q if first else _core.wxyz_to_xyzw(torch, q)
 
 
 # Old-style Functions (``forward(ctx, ...)``): ``Function.apply`` binds the arguments of a
-# ``setup_context`` Function through ``inspect.signature`` on every call (see _fused.py). Used in
-# eager mode only; torch.func transforms take _fused's Functions, which have vmap rules.
+# ``setup_context`` Function through ``inspect.signature`` on every call, about 20 us, a fifth of the
+# whole forward + backward at N = 64. Used in eager mode only (see _dispatch.py): torch.func
+# transforms and compilers take the formula, which they differentiate themselves.
 
 
 class QuaternionToMatrixKernel(torch.autograd.Function):
@@ -132,17 +130,16 @@ class QuaternionToMatrixKernel(torch.autograd.Function):
     @staticmethod
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor, None]:
         (q,) = ctx.saved_tensors
-        # a double backward records this (or an unusual cotangent): the differentiable formula
-        if torch.is_grad_enabled() or not _plain(grad, q):
-            return _fused.from_first(
-                _fused.q2m_backward(_fused.to_first(q, ctx.first), grad), ctx.first
-            ), None
+        if torch.is_grad_enabled() or not _plain(grad, q):  # recorded for a double backward
+            cotangent = _core.quaternion_to_matrix_cotangent(torch, _first(q, ctx.first), grad)
+            return _stored(cotangent, ctx.first), None
         return q2m_backward(q, grad, ctx.first), None
 
     @staticmethod
     def jvp(ctx: Any, tangent: Tensor, _: None) -> Tensor:
         (q,) = ctx.saved_tensors
-        return _fused.q2m_jvp(_fused.to_first(q, ctx.first), _fused.to_first(tangent, ctx.first))
+        r: Tensor = _core.quaternion_to_matrix_tangent(torch, q, tangent, scalar_first=ctx.first)
+        return r
 
 
 class MatrixToQuaternionKernel(torch.autograd.Function):
@@ -151,26 +148,31 @@ class MatrixToQuaternionKernel(torch.autograd.Function):
         q = m2q_forward(matrix, first)
         ctx.first = first
         ctx.save_for_backward(matrix, q)
-        ctx.save_for_forward(matrix)
+        ctx.save_for_forward(matrix, q)
         return q
 
     @staticmethod
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor, None]:
         matrix, q = ctx.saved_tensors
-        # double backward (or an unusual cotangent): the quaternion as a function of the matrix
+        # A double backward differentiates this through the saved result q, whose own derivative is
+        # this Function again.
         if torch.is_grad_enabled() or not _plain(grad, matrix):
-            return _fused.m2q_backward(matrix, _fused.to_first(grad, ctx.first), *_fused.select(matrix)), None
+            first = ctx.first
+            return _core.matrix_to_quaternion_cotangent(
+                torch, matrix, _first(q, first), _first(grad, first)
+            ), None
         return m2q_backward(matrix, q, grad, ctx.first), None
 
     @staticmethod
     def jvp(ctx: Any, tangent: Tensor, _: None) -> Tensor:
-        (matrix,) = ctx.saved_tensors
-        return _fused.from_first(_fused.m2q_jvp(matrix, tangent), ctx.first)
+        matrix, q = ctx.saved_tensors
+        dq: Tensor = _core.matrix_to_quaternion_tangent(torch, matrix, q, tangent, scalar_first=ctx.first)
+        return dq
 
 
 def quaternion_to_matrix(xp: Any, q: Tensor, *, scalar_first: bool = True) -> Tensor:
-    """:func:`diffquat._core.quaternion_to_matrix` through the C kernels (same name: the backend
-    validates by it); without the Function where no derivative can be asked for."""
+    """:func:`diffquat._core.quaternion_to_matrix` through the C kernels; without the Function where no
+    derivative can be asked for."""
     if _records(q):
         r: Tensor = QuaternionToMatrixKernel.apply(q, scalar_first)  # type: ignore[no-untyped-call]
         return r
@@ -178,9 +180,13 @@ def quaternion_to_matrix(xp: Any, q: Tensor, *, scalar_first: bool = True) -> Te
 
 
 def matrix_to_quaternion(xp: Any, matrix: Tensor, *, scalar_first: bool = True) -> Tensor:
-    """:func:`diffquat._core.matrix_to_quaternion` through the C kernels (same name: the backend
-    validates by it)."""
+    """:func:`diffquat._core.matrix_to_quaternion` through the C kernels."""
     if _records(matrix):
         q: Tensor = MatrixToQuaternionKernel.apply(matrix, scalar_first)  # type: ignore[no-untyped-call]
         return q
     return m2q_forward(matrix, scalar_first)
+
+
+# The kernels write NaN rows for non-finite input themselves (diffquat._backend.nonfinite_rows).
+quaternion_to_matrix.handles_nonfinite = True  # type: ignore[attr-defined]
+matrix_to_quaternion.handles_nonfinite = True  # type: ignore[attr-defined]

@@ -31,7 +31,6 @@ import triton.language as tl
 from torch import Tensor
 
 from .. import _core
-from . import _fused
 
 # Rows per program and warps per program: the fastest of 128-1024 rows x 4 or 8 warps at N = 16M on
 # an H100 for all four kernels (84-96% of the copy bandwidth; 1024 rows with 4 warps fell to 44%).
@@ -130,12 +129,20 @@ def _q2m_forward_kernel(
     xx, yy, zz = sx * x, sy * y, sz * z
     xy, xz, yz = sx * y, sx * z, sy * z
     wx, wy, wz = sx * w, sy * w, sz * w
+    # a non-finite component makes the whole row NaN (diffquat._backend.nonfinite_rows): a value
+    # times 0 is 0 when finite, NaN otherwise
+    ok = w * 0.0 + x * 0.0 + y * 0.0 + z * 0.0 == 0.0
     _store_matrix(
         out_ptr, rows, n,
-        1.0 - (yy + zz), xy - wz, xz + wy,
-        xy + wz, 1.0 - (xx + zz), yz - wx,
-        xz - wy, yz + wx, 1.0 - (xx + yy),
+        _ok(ok, 1.0 - (yy + zz)), _ok(ok, xy - wz), _ok(ok, xz + wy),
+        _ok(ok, xy + wz), _ok(ok, 1.0 - (xx + zz)), _ok(ok, yz - wx),
+        _ok(ok, xz - wy), _ok(ok, yz + wx), _ok(ok, 1.0 - (xx + yy)),
     )  # fmt: skip
+
+
+@triton.jit
+def _ok(ok, value):
+    return tl.where(ok, value, float("nan"))
 
 
 @triton.jit
@@ -160,11 +167,11 @@ def _q2m_backward_kernel(
 
 
 @triton.jit
-def _pivots(m00, m11, m22):
-    t0 = 1.0 + m00 + m11 + m22
-    t1 = 1.0 + m00 - m11 - m22
-    t2 = 1.0 - m00 + m11 - m22
-    t3 = 1.0 - m00 - m11 + m22
+def _pivots(m00, m11, m22, one):
+    t0 = one + m00 + m11 + m22
+    t1 = one + m00 - m11 - m22
+    t2 = one - m00 + m11 - m22
+    t3 = one - m00 - m11 + m22
     high01, high23 = tl.maximum(t0, t1), tl.maximum(t2, t3)
     # the core's choice: the larger pair, then the larger of it, ties to the lower index
     return t0, t1, t2, t3, high01 >= high23, t0 >= t1, t2 >= t3, tl.maximum(high01, high23)
@@ -179,16 +186,34 @@ def _pick(use01, use0, use2, a, b, c, d):
 def _m2q_forward_kernel(m_ptr, out_ptr, n, FIRST: tl.constexpr, WIDE: tl.constexpr, block: tl.constexpr):
     rows = _rows(block, WIDE)
     m00, m01, m02, m10, m11, m12, m20, m21, m22 = _load_matrix(m_ptr, rows, n)
-    t0, t1, t2, t3, use01, use0, use2, _ = _pivots(m00, m11, m22)
+    ok = (
+        m00 * 0.0
+        + m01 * 0.0
+        + m02 * 0.0
+        + m10 * 0.0
+        + m11 * 0.0
+        + m12 * 0.0
+        + m20 * 0.0
+        + m21 * 0.0
+        + m22 * 0.0
+    ) == 0.0
+    # a quarter of the matrix (exact): sums of four quarters cannot overflow (_core._quarter)
+    m00, m01, m02, m10, m11, m12 = 0.25 * m00, 0.25 * m01, 0.25 * m02, 0.25 * m10, 0.25 * m11, 0.25 * m12
+    m20, m21, m22 = 0.25 * m20, 0.25 * m21, 0.25 * m22
+    t0, t1, t2, t3, use01, use0, use2, _ = _pivots(m00, m11, m22, 0.25)
     wx, wy, wz = m21 - m12, m02 - m20, m10 - m01
     xy, xz, yz = m01 + m10, m02 + m20, m12 + m21
     w = _pick(use01, use0, use2, t0, wx, wy, wz)
     x = _pick(use01, use0, use2, wx, t1, xy, xz)
     y = _pick(use01, use0, use2, wy, xy, t2, yz)
     z = _pick(use01, use0, use2, wz, xz, yz, t3)
+    # divided by the largest component first (_core._m2q_unit): the squares cannot overflow
+    big = tl.maximum(tl.maximum(tl.abs(w), tl.abs(x)), tl.maximum(tl.abs(y), tl.abs(z)))
+    w, x, y, z = w / big, x / big, y / big, z / big
     inv = 1.0 / tl.sqrt(w * w + x * x + y * y + z * z)
     negative = (w < 0) | ((w == 0) & ((x < 0) | ((x == 0) & ((y < 0) | ((y == 0) & (z < 0))))))
     inv = tl.where(negative, -inv, inv)
+    inv = tl.where(ok, inv, float("nan"))  # a non-finite entry makes the whole row NaN
     _store_quaternion(out_ptr, rows, n, w * inv, x * inv, y * inv, z * inv, FIRST)
 
 
@@ -203,7 +228,7 @@ def _m2q_backward_kernel(
     m00 = tl.load(m_ptr + 9 * rows, mask=mask, other=1.0)
     m11 = tl.load(m_ptr + 9 * rows + 4, mask=mask, other=1.0)
     m22 = tl.load(m_ptr + 9 * rows + 8, mask=mask, other=1.0)
-    _, _, _, _, use01, use0, use2, largest = _pivots(m00, m11, m22)
+    _, _, _, _, use01, use0, use2, largest = _pivots(m00, m11, m22, 1.0)
     w, x, y, z = _load_quaternion(q_ptr, rows, n, FIRST)
     gw, gx, gy, gz = _load_quaternion(g_ptr, rows, n, FIRST)
     # the scale +-1/|c| read back from q: component k of candidate k is the pivot t_k
@@ -286,6 +311,7 @@ class QuaternionToMatrix(torch.autograd.Function):
     @staticmethod
     def setup_context(ctx: Any, inputs: tuple[Tensor, bool], output: Tensor) -> None:
         ctx.save_for_backward(inputs[0])
+        ctx.save_for_forward(inputs[0])
         ctx.scalar_first = inputs[1]
 
     @staticmethod
@@ -293,9 +319,17 @@ class QuaternionToMatrix(torch.autograd.Function):
         (q,) = ctx.saved_tensors
         first = ctx.scalar_first
         if torch.is_grad_enabled() and (q.requires_grad or grad.requires_grad):
-            # recorded for a double backward
-            return _fused.from_first(_fused.q2m_backward(_fused.to_first(q, first), grad), first), None
+            # recorded for a double backward: the core's cotangent, which differentiates again
+            q1 = q if first else _core.xyzw_to_wxyz(torch, q)
+            cotangent = _core.quaternion_to_matrix_cotangent(torch, q1, grad)
+            return (cotangent if first else _core.wxyz_to_xyzw(torch, cotangent)), None
         return q2m_backward(q, grad, first), None
+
+    @staticmethod
+    def jvp(ctx: Any, tangent: Tensor, _: None) -> Tensor:
+        (q,) = ctx.saved_tensors
+        r: Tensor = _core.quaternion_to_matrix_tangent(torch, q, tangent, scalar_first=ctx.scalar_first)
+        return r
 
 
 def quaternion_to_matrix(xp: Any, q: Tensor, *, scalar_first: bool = True) -> Tensor:
@@ -335,6 +369,7 @@ class MatrixToQuaternion(torch.autograd.Function):
     @staticmethod
     def setup_context(ctx: Any, inputs: tuple[Tensor, bool], output: Tensor) -> None:
         ctx.save_for_backward(inputs[0], output)
+        ctx.save_for_forward(inputs[0], output)
         ctx.scalar_first = inputs[1]
 
     @staticmethod
@@ -343,11 +378,18 @@ class MatrixToQuaternion(torch.autograd.Function):
         first = ctx.scalar_first
         if torch.is_grad_enabled() and (matrix.requires_grad or grad.requires_grad):
             # recorded for a double backward
-            cotangent = _core.matrix_to_quaternion_cotangent(
-                torch, matrix, _fused.to_first(q, first), _fused.to_first(grad, first)
-            )
-            return cotangent, None
+            if not first:
+                q, grad = _core.xyzw_to_wxyz(torch, q), _core.xyzw_to_wxyz(torch, grad)
+            return _core.matrix_to_quaternion_cotangent(torch, matrix, q, grad), None
         return m2q_backward(matrix, q, grad, first), None
+
+    @staticmethod
+    def jvp(ctx: Any, tangent: Tensor, _: None) -> Tensor:
+        matrix, q = ctx.saved_tensors
+        dq: Tensor = _core.matrix_to_quaternion_tangent(
+            torch, matrix, q, tangent, scalar_first=ctx.scalar_first
+        )
+        return dq
 
 
 def matrix_to_quaternion(xp: Any, matrix: Tensor, *, scalar_first: bool = True) -> Tensor:
