@@ -66,9 +66,11 @@ def _register_targets() -> None:
     """Register each handler with XLA's CPU runtime once (the registry is global to the process), as
     batch partitionable: each kernel loops over the leading batch dimensions of every operand and
     result, so a shard of the batch is computed by the same call on the shard."""
+    partitionable = getattr(jax.ffi, "register_ffi_target_as_batch_partitionable", None)  # newer jax
     for name, capsule in _kernels.xla_handlers().items():
         jax.ffi.register_ffi_target(f"diffquat_{name}", capsule, platform="cpu")
-        jax.ffi.register_ffi_target_as_batch_partitionable(f"diffquat_{name}")
+        if partitionable is not None:
+            partitionable(f"diffquat_{name}")
 
 
 _register_targets()
@@ -109,6 +111,8 @@ def _batch_partitioning(ctx: Any) -> dict[str, Any]:
     own (never split). Without them, ``jit`` over a batch-sharded array gathers the whole batch on
     every device and runs the kernel on all of it there (``shard_map`` needs neither: each device
     lowers its own shard)."""
+    if not all(isinstance(n, int) for aval in (*ctx.avals_in, *ctx.avals_out) for n in aval.shape):
+        return {}  # symbolic sizes (shape polymorphism): no rule to state, XLA keeps the call whole
     batch = ctx.avals_in[0].ndim - 2
     attributes: dict[str, Any] = {
         "mhlo.frontend_attributes": mlir.ir_attribute({"num_batch_dims": str(batch)})
@@ -134,8 +138,8 @@ def _batch_partitioning(ctx: Any) -> dict[str, Any]:
 
 def _for_export(ctx: Any) -> bool:
     """Whether ``ctx`` lowers a program for ``jax.export``. jax has no public way to ask; its lowering
-    parameters say so (``for_export``, set by ``jax.export`` since jax 0.4.2x). Where they do not
-    (another jax), the kernels are lowered and ``jax.export`` refuses them with its own error."""
+    parameters say so (``for_export``, which ``jax.export`` sets). Read defensively: where a jax has
+    no such field, the kernels are lowered and ``jax.export`` refuses them with its own error."""
     params = getattr(getattr(ctx, "module_context", None), "lowering_parameters", None)
     return bool(getattr(params, "for_export", False))
 
