@@ -8,6 +8,8 @@ any), so slow drifts of a shared machine hit all methods alike; the first call (
 moves the same bytes as the conversion (input read + output written; forward + backward adds the
 input and the cotangent read and the input gradient written): each time is also a fraction of it.
 The peers are benchmark-only dependencies (the ``bench`` extra); a missing one is left out and named.
+jax's ``matrix_to_quaternion`` and ``matrix_to_axis_angle`` have two rows, side by side in one run: the
+default (the formula, on every platform) and the C kernels that ``diffquat.jax.cpu_kernels`` turns on.
 """
 
 from __future__ import annotations
@@ -32,6 +34,11 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
 
 import cases  # noqa: E402  (the test suite's named cases: the accuracy table runs on them)
+
+# The jax functions that diffquat.jax.cpu_kernels changes on the CPU (tests/test_jax_deploy.py's
+# KERNEL_OPS): their jax rows are timed both ways, the default formula and the C kernels.
+JAX_KERNEL_OPS = ("matrix_to_quaternion", "matrix_to_axis_angle")
+JAX_KERNELS = "diffquat jax.jit, C kernels (cpu_kernels on)"
 
 FULL_SIZES = (1, 64, 4096, 262144, 4194304)
 QUICK_SIZES = (1, 64)
@@ -95,6 +102,16 @@ def build_ops(quick: bool, dynamic: bool | None = None) -> list[OpSpec]:
 
     def compiled(fn: Callable[[Any], Any]) -> Callable[[Any], Any]:
         return torch.compile(fn, fullgraph=True, dynamic=dynamic)
+
+    def with_kernels(fn: Callable[[Any], Any]) -> Callable[[Any], Any]:
+        """``fn`` traced with the kernels on: the switch is read where a function is traced, so the
+        block inside the traced function holds wherever jit, vjp and the accuracy table trace it."""
+
+        def traced(x: Any) -> Any:
+            with dqj.cpu_kernels():
+                return fn(x)
+
+        return traced
 
     ops: list[OpSpec] = []
     # (name, source, target, peer builders). Axis-angle rows appear once diffquat has those functions.
@@ -237,6 +254,13 @@ def build_ops(quick: bool, dynamic: bool | None = None) -> list[OpSpec]:
                     )
                 )
         methods.append(Method("diffquat jax.jit", "jax", jax.jit(getattr(dqj, name)), compiled=True))
+        if name in JAX_KERNEL_OPS:
+            if dqj._xla is None:
+                skipped.append(f"{JAX_KERNELS} (the C extension is not built)")
+            else:
+                methods.append(
+                    Method(JAX_KERNELS, "jax", jax.jit(with_kernels(getattr(dqj, name))), compiled=True)
+                )
         methods.append(Method("diffquat numpy", "numpy", getattr(dqn, name)))
         for label, build in peers.items():
             methods += _try(skipped, label, build)
@@ -581,6 +605,14 @@ def ratios(results: dict[str, Any]) -> list[str]:
                     )
                 if "jaxlie (jit)" in t and "diffquat jax.jit" in t:
                     parts.append(f"jaxlie / diffquat jax = {t['jaxlie (jit)'] / t['diffquat jax.jit']:.2f}x")
+                if JAX_KERNELS in t and "diffquat jax.jit" in t:
+                    parts.append(
+                        f"jax formula / jax C kernels = {t['diffquat jax.jit'] / t[JAX_KERNELS]:.2f}x"
+                    )
+                    if "jaxlie (jit)" in t:
+                        parts.append(
+                            f"jaxlie / diffquat jax C kernels = {t['jaxlie (jit)'] / t[JAX_KERNELS]:.2f}x"
+                        )
                 if parts:
                     lines.append(f"| {name} | {mode} | {n} | " + "; ".join(parts) + " |")
     return lines

@@ -38,7 +38,10 @@ if os.environ.get("DIFFQUAT_TEST_KERNELS"):
     _swap_in_kernels(os.environ["DIFFQUAT_TEST_KERNELS"])
 
 # Switched once, here: float64 for the gradient checks, and strict promotion so the core cannot lean
-# on an implicit cast or a rank broadcast that numpy or torch would not do the same way.
+# on an implicit cast or a rank broadcast that numpy or torch would not do the same way. Two host CPU
+# devices for the sharding tests (shard_map, pmap, sharded jit: tests/test_jax_deploy.py); it must be
+# set before anything starts jax's backend, and single-device programs still run on the first.
+jax.config.update("jax_num_cpu_devices", 2)
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 jax.config.update("jax_numpy_rank_promotion", "raise")

@@ -25,11 +25,14 @@ def concrete(trailing: tuple[int, ...]) -> tuple[int, ...]:
 
 # The one place where the backends' signatures may differ: the random source is the framework's own.
 RANDOM_SOURCE = {"numpy": {"rng"}, "torch": {"generator", "device"}, "jax": {"key"}}
+# A backend's own switches, public but no rotation function: jax's C-kernel switch (tests/test_jax_deploy.py).
+SWITCHES = {"numpy": set(), "torch": set(), "jax": {"cpu_kernels"}}
 
 
 def public(name: str) -> dict[str, inspect.Signature]:
+    """The rotation functions of a backend: its ``__all__`` but its own switches."""
     module = importlib.import_module(f"diffquat.{name}")
-    return {n: inspect.signature(getattr(module, n)) for n in module.__all__}
+    return {n: inspect.signature(getattr(module, n)) for n in module.__all__ if n not in SWITCHES[name]}
 
 
 def test_import_diffquat_imports_neither_torch_nor_jax() -> None:

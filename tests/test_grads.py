@@ -244,11 +244,12 @@ def test_jax_matrix_to_quaternion_value_under_differentiation(scalar_first: bool
 
 @pytest.mark.parametrize("scalar_first", [True, False], ids=["wxyz", "xyzw"])
 def test_jax_matrix_to_quaternion_kernels_differentiate_as_the_formula(scalar_first: bool) -> None:
-    """On the CPU jax's matrix_to_quaternion calls the C kernels (diffquat/jax/_xla.py: three
-    primitives, with derivative rules of their own); elsewhere it is the formula (``_M2Q``). Both give
-    the same values and the same first and second derivatives, forward and reverse, under ``vmap``
-    too, on rotations (half-turns among them) and on matrices off SO(3); ``check_grads`` passes on the
-    formula (the public function, the kernels, is checked by the tests above)."""
+    """With ``cpu_kernels`` on, jax's matrix_to_quaternion calls the C kernels on the CPU
+    (diffquat/jax/_xla.py: three primitives, with derivative rules of their own); by default, and off
+    the CPU, it is the formula (``_M2Q``). Both give the same values and the same first and second
+    derivatives, forward and reverse, under ``vmap`` too, on rotations (half-turns among them) and on
+    matrices off SO(3); ``check_grads`` passes on the formula (the public function, the formula by
+    default, is checked by the tests above)."""
     from diffquat.jax import _M2Q
     from diffquat.jax._namespace import XP
 
@@ -275,8 +276,10 @@ def test_jax_matrix_to_quaternion_kernels_differentiate_as_the_formula(scalar_fi
         ),
     )
     for evaluate in evaluations:
+        with BACKENDS["jax"].module.cpu_kernels():  # traced with the kernels (tests/test_xla.py)
+            by_kernels = jax.jit(evaluate, static_argnums=0)(kernels)
         np.testing.assert_allclose(
-            np.asarray(jax.jit(evaluate, static_argnums=0)(kernels)),
+            np.asarray(by_kernels),
             np.asarray(jax.jit(evaluate, static_argnums=0)(formula)),
             rtol=1e-12,
             atol=1e-12,

@@ -3,10 +3,7 @@ per rotation, not once per matrix entry (XLA fuses by recomputation; see ``_core
 
 from __future__ import annotations
 
-import os
 import re
-import subprocess
-import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -39,7 +36,8 @@ def test_matrix_to_quaternion_cotangent_is_one_stack(scalar_first: bool) -> None
     """The reverse-mode program of matrix_to_quaternion assembles the (..., 3, 3) cotangent in one
     stack of the nine entries, not as nine zero-padded copies of the matrix summed (see
     ``_core._tangent_entries``), and the scalar-last result is built in its order, not reindexed.
-    That is the formula every platform but the CPU compiles (the CPU calls the C kernels: below)."""
+    That is the formula every platform compiles by default (``cpu_kernels`` on, the CPU calls the C
+    kernels: below)."""
     from diffquat.jax._namespace import XP
 
     def loss(m: Any) -> Any:
@@ -53,10 +51,10 @@ def test_matrix_to_quaternion_cotangent_is_one_stack(scalar_first: bool) -> None
 
 @pytest.mark.parametrize("scalar_first", [True, False], ids=["wxyz", "xyzw"])
 def test_matrix_to_quaternion_calls_the_kernels_on_the_cpu(scalar_first: bool) -> None:
-    """On the CPU, matrix_to_quaternion is the C kernels as custom calls (``diffquat/jax/_xla.py``):
-    the forward program is the forward kernel alone, and the reverse program the forward kernel for
-    the result and the backward kernel for the cotangent, with nothing of the formula (no square root)
-    compiled beside them; the vmap of a gradient still calls them."""
+    """With ``cpu_kernels`` on, matrix_to_quaternion on the CPU is the C kernels as custom calls
+    (``diffquat/jax/_xla.py``): the forward program is the forward kernel alone, and the reverse
+    program the forward kernel for the result and the backward kernel for the cotangent, with nothing
+    of the formula (no square root) compiled beside them; the vmap of a gradient still calls them."""
     if dq._xla is None:
         pytest.skip("the C extension is not built (no C compiler at install)")
     order = "wxyz" if scalar_first else "xyzw"
@@ -74,10 +72,11 @@ def test_matrix_to_quaternion_calls_the_kernels_on_the_cpu(scalar_first: bool) -
         assert "sqrt(" not in text
         return sorted(re.findall(r'custom_call_target="([^"]+)"', text))
 
-    assert calls(f, m) == [f"diffquat_m2q_forward_{order}"]
-    backward = [f"diffquat_m2q_backward_{order}", f"diffquat_m2q_forward_{order}"]
-    assert calls(jax.grad(loss), m) == backward
-    assert calls(jax.vmap(jax.grad(loss)), m.reshape(4, 256, 3, 3)) == backward
+    with dq.cpu_kernels():
+        assert calls(f, m) == [f"diffquat_m2q_forward_{order}"]
+        backward = [f"diffquat_m2q_backward_{order}", f"diffquat_m2q_forward_{order}"]
+        assert calls(jax.grad(loss), m) == backward
+        assert calls(jax.vmap(jax.grad(loss)), m.reshape(4, 256, 3, 3)) == backward
 
 
 def test_kernel_primitives_lower_other_dtypes_as_the_formula() -> None:
@@ -100,26 +99,10 @@ def test_kernel_primitives_lower_other_dtypes_as_the_formula() -> None:
     )
 
 
-def test_jax_export_with_the_kernels_switched_off() -> None:
-    """``jax.export`` refuses custom calls that are not jax's own: with DIFFQUAT_JAX_CPU_KERNELS=0 at
-    import, CPU programs are the formula, which exports and runs (a fresh process, since the switch is
-    read once)."""
-    script = (
-        "import jax, jax.numpy as jnp, numpy as np, diffquat.jax as dq\n"
-        "assert dq._xla is None\n"
-        "m = jnp.asarray(np.diag([1.0, -1.0, -1.0]))[None]\n"
-        "exported = jax.export.export(jax.jit(dq.matrix_to_quaternion))(m)\n"
-        "out = exported.call(m)\n"
-        "np.testing.assert_allclose(np.asarray(out), [[0.0, 1.0, 0.0, 0.0]], atol=1e-7)\n"
-    )
-    env = {**os.environ, "DIFFQUAT_JAX_CPU_KERNELS": "0"}
-    result = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True)
-    assert result.returncode == 0, result.stderr
-
-
 def test_matrix_to_axis_angle_takes_the_kernels_on_the_cpu() -> None:
-    """jax's matrix_to_axis_angle takes the kernels for its quaternion step on the CPU (forward, and
-    backward under differentiation); matrix_to_euler_angles keeps the core formula (benchmarks/)."""
+    """With ``cpu_kernels`` on, jax's matrix_to_axis_angle takes the kernels for its quaternion step on
+    the CPU (forward, and backward under differentiation); matrix_to_euler_angles keeps the core
+    formula (benchmarks/)."""
     if dq._xla is None:
         pytest.skip("the C extension is not built (no C compiler at install)")
     m = jnp.ones((1024, 3, 3), jnp.float32)
@@ -127,12 +110,13 @@ def test_matrix_to_axis_angle_takes_the_kernels_on_the_cpu() -> None:
     def targets(fn: Callable[..., Any]) -> list[str]:
         return sorted(re.findall(r'custom_call_target="([^"]+)"', jax.jit(fn).lower(m).compile().as_text()))
 
-    assert targets(dq.matrix_to_axis_angle) == ["diffquat_m2q_forward_wxyz"]
-    assert targets(jax.grad(lambda x: dq.matrix_to_axis_angle(x).sum())) == [
-        "diffquat_m2q_backward_wxyz",
-        "diffquat_m2q_forward_wxyz",
-    ]
-    assert targets(lambda x: dq.matrix_to_euler_angles(x, "ZYX")) == []
+    with dq.cpu_kernels():
+        assert targets(dq.matrix_to_axis_angle) == ["diffquat_m2q_forward_wxyz"]
+        assert targets(jax.grad(lambda x: dq.matrix_to_axis_angle(x).sum())) == [
+            "diffquat_m2q_backward_wxyz",
+            "diffquat_m2q_forward_wxyz",
+        ]
+        assert targets(lambda x: dq.matrix_to_euler_angles(x, "ZYX")) == []
 
 
 @pytest.mark.parametrize("scalar_first", [True, False], ids=["wxyz", "xyzw"])

@@ -1,12 +1,18 @@
 """diffquat on JAX. Same names and semantics as :mod:`diffquat.numpy` and :mod:`diffquat.torch`;
 see :mod:`diffquat` for the conventions. Every function is traceable by ``jit``, ``vmap``, ``grad``
-and ``jacfwd``/``jacrev``."""
+and ``jacfwd``/``jacrev``, runs under ``shard_map``, ``pmap`` and sharded ``jit``, and exports with
+``jax.export`` (the exported program is plain StableHLO: it runs where diffquat is not installed).
+
+One switch of its own, :func:`cpu_kernels` (off by default): ``matrix_to_quaternion`` and
+``matrix_to_axis_angle`` on the CPU through diffquat's C kernels, called as XLA custom calls."""
 
 from __future__ import annotations
 
 import importlib
 import os
+import warnings
 from collections.abc import Callable
+from types import TracebackType
 from typing import Any
 
 import jax
@@ -23,6 +29,7 @@ from ._namespace import XP
 __all__ = [
     "axis_angle_to_matrix",
     "axis_angle_to_quaternion",
+    "cpu_kernels",
     "euler_angles_to_matrix",
     "euler_angles_to_quaternion",
     "fit_rotation",
@@ -133,26 +140,109 @@ _M2Q = {order: _m2q_in_order(order) for order in (True, False)}
 
 
 # The C kernels as XLA custom calls (_xla.py), where the extension was built (pyproject.toml builds it
-# wherever a C compiler is found), unless DIFFQUAT_JAX_CPU_KERNELS=0 at import: jax.export refuses
-# custom calls that are not jax's own (without DisabledSafetyCheck.custom_call), and an exported CPU
-# program calling them runs only where diffquat.jax is imported. With the switch off, CPU programs
-# are the formula, as on other platforms.
-def _cpu_kernels() -> Any:
-    if os.environ.get("DIFFQUAT_JAX_CPU_KERNELS", "1") == "0":
-        return None
+# wherever a C compiler is found) and jax can key its caches on the switch (make_user_context).
+def _load_kernels() -> Any:
+    if not hasattr(jax, "make_user_context"):
+        return None  # an older jax: a flip of the switch could not reach jit's caches
     try:
         return importlib.import_module("._xla", __name__)
     except ImportError:  # the extension was not built
         return None
 
 
-_xla = _cpu_kernels()
+_xla = _load_kernels()
+
+_ENVIRONMENT = "DIFFQUAT_JAX_CPU_KERNELS"
+
+
+def _from_environment() -> bool:
+    value = os.environ.get(_ENVIRONMENT, "0").strip().lower()
+    if value not in ("0", "1", "false", "true", "off", "on", "no", "yes", ""):
+        raise ValueError(f"{_ENVIRONMENT} must be 1 (on) or 0 (off), got {value!r}")
+    return value in ("1", "true", "on", "yes")
+
+
+# The state of the switch: a jax user context, whose value is part of the key of jax's tracing,
+# lowering and compilation caches (as jax's own options are): a function traced, or compiled, with
+# the switch in one state is traced and compiled again when it is called in the other.
+_KERNELS_ON: Any = None
+if _xla is not None:
+    _user_context: Callable[[bool], Any] = jax.make_user_context  # untyped in jax
+    _KERNELS_ON = _user_context(_from_environment())
+
+
+class _Restore:
+    """What :func:`cpu_kernels` returns: a context manager that puts the previous setting back."""
+
+    def __init__(self, previous: bool | None) -> None:
+        self._previous = previous
+
+    def __enter__(self) -> None:
+        return None
+
+    def __exit__(
+        self, kind: type[BaseException] | None, error: BaseException | None, trace: TracebackType | None
+    ) -> None:
+        if _KERNELS_ON is not None and self._previous is not None:
+            _KERNELS_ON.set_global(self._previous)
+
+
+def cpu_kernels(enabled: bool = True) -> _Restore:
+    """Turn the C kernels of ``matrix_to_quaternion`` and ``matrix_to_axis_angle`` on the CPU on or off
+    (off by default): ``cpu_kernels(True)`` for the rest of the process, or for a block::
+
+        with diffquat.jax.cpu_kernels():          # or cpu_kernels(True) / cpu_kernels(False)
+            q = jax.jit(diffquat.jax.matrix_to_quaternion)(matrices)   # (..., 3, 3) -> (..., 4)
+
+    On, ``matrix_to_quaternion`` (forward and reverse mode) and the quaternion step of
+    ``matrix_to_axis_angle`` call diffquat's C kernels (``diffquat/_kernels.c``) as XLA custom calls
+    wherever ``jit`` lowers for the CPU: one pass over memory each way, 1.4-2.4x faster than XLA's
+    loops for the formula (benchmarks/). The values are the formula's (the same selection, to a few
+    ulps); other platforms, and dtypes other than float32 and float64, keep the formula. Off, every
+    platform runs the formula, and every compiled program is plain StableHLO.
+
+    The switch is process-wide, like ``jax.config.update``: calling it sets it at once, and as a
+    context manager it restores the previous setting when the block exits. It is read when a function
+    is traced, and it is part of the key of jax's caches (``jax.make_user_context``): a function that
+    ``jit`` traced or compiled in one state is traced and compiled again when it runs in the other,
+    never reusing the other's program (so each flip recompiles every ``jit`` function at its next call;
+    set it once, or around a block, not in a loop). Where a function is traced decides, not where it
+    is called: ``jit`` of a function that enters the block itself traces with the kernels.
+
+    Exported programs never call the kernels. ``jax.export`` refuses custom calls that have no
+    compatibility guarantee, and an artefact that called them would run only in a process that
+    imported diffquat.jax: a program lowered for ``jax.export`` takes the formula on the CPU too,
+    whatever the switch says. Without the C extension (no C compiler at install) or on a jax without
+    ``jax.make_user_context``, turning it on warns and changes nothing.
+
+    The environment variable ``DIFFQUAT_JAX_CPU_KERNELS=1`` at import turns it on from the start.
+
+    Args:
+        enabled: whether the kernels are on (default ``True``).
+    """
+    if _KERNELS_ON is None:
+        if enabled:
+            warnings.warn(
+                "diffquat.jax.cpu_kernels(True) has no effect: the C extension is not built, or this "
+                "jax has no make_user_context; the formula runs on the CPU",
+                RuntimeWarning,
+                stacklevel=2,
+            )
+        return _Restore(None)
+    previous = bool(_KERNELS_ON.get_global())
+    _KERNELS_ON.set_global(bool(enabled))
+    return _Restore(previous)
+
+
+def _kernels_on() -> bool:
+    return _KERNELS_ON is not None and bool(_KERNELS_ON.value)
 
 
 def _kernels_on_the_cpu(matrix: Array, scalar_first: bool, elsewhere: Callable[[Array], Array]) -> Array:
     """matrix_to_quaternion by the C kernels (_xla.py) where ``jit`` lowers for the CPU, by ``elsewhere``
-    on other platforms (the branch not chosen is not lowered) and where the kernels are not loaded."""
-    if _xla is None:
+    on other platforms (the branch not chosen is not lowered), while :func:`cpu_kernels` is on; by
+    ``elsewhere`` on every platform while it is off (the default)."""
+    if not _kernels_on():
         return elsewhere(matrix)
     return jax.lax.platform_dependent(
         matrix, cpu=lambda m: _xla.matrix_to_quaternion(m, scalar_first), default=elsewhere
@@ -160,9 +250,9 @@ def _kernels_on_the_cpu(matrix: Array, scalar_first: bool, elsewhere: Callable[[
 
 
 def _matrix_to_quaternion(xp: Any, matrix: Array, *, scalar_first: bool = True) -> Array:
-    """The kernels on the CPU, forward and backward; elsewhere the formula above. Side by side at
-    N = 262144 the kernels measured 1.5x faster forward than the formula and 1.4x forward + backward,
-    2.4x both at N = 4096."""
+    """The formula above; the kernels on the CPU, forward and backward, while :func:`cpu_kernels` is
+    on. Side by side at N = 262144 the kernels measured 1.5x faster forward than the formula and 1.4x
+    forward + backward, 2.4x both at N = 4096."""
     portable = _M2Q[bool(scalar_first)]
     return _kernels_on_the_cpu(matrix, scalar_first, lambda m: portable(xp, m))
 
@@ -261,11 +351,12 @@ def axis_angle_to_matrix(axis_angle: ArrayLike) -> Array:
     return _B(_algebra.axis_angle_to_matrix, axis_angle)
 
 
-# matrix_to_axis_angle takes the kernels for its quaternion step on the CPU (see _core.Conversion):
-# against the plain core step, which XLA fuses into what follows, they measured forward 1.1x faster at
-# N = 262144 and forward + backward 1.2-1.8x from N = 64 on. matrix_to_euler_angles keeps the core's
-# step, where the kernels measured mixed (0.95-1.24x). Off the CPU the composite keeps the plain step:
-# the formula's custom derivative measured 1.5-2x slower inside these composites.
+# matrix_to_axis_angle takes the kernels for its quaternion step on the CPU while cpu_kernels is on
+# (see _core.Conversion): against the plain core step, which XLA fuses into what follows, they
+# measured forward 1.1x faster at N = 262144 and forward + backward 1.2-1.8x from N = 64 on.
+# matrix_to_euler_angles keeps the core's step, where the kernels measured mixed (0.95-1.24x). Without
+# the kernels the composite keeps the plain step: the formula's custom derivative measured 1.5-2x
+# slower inside these composites.
 def _m2q_step(xp: Any, matrix: Array) -> Array:
     return _kernels_on_the_cpu(matrix, True, lambda m: _core.matrix_to_quaternion(xp, m))
 

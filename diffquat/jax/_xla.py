@@ -18,12 +18,24 @@ higher order (``hessian``, ``check_grads`` at order 2) works through XLA's deriv
 
 The kernels take float32 and float64 (the backend computes half precision in float32 before). Only
 the CPU lowering calls them; every other platform lowers the core formulas, and
-:mod:`diffquat.jax` only takes this path where ``jit`` lowers for the CPU (``platform_dependent``).
+:mod:`diffquat.jax` only takes this path where ``jit`` lowers for the CPU (``platform_dependent``),
+and only while :func:`diffquat.jax.cpu_kernels` is on (off by default). A program lowered for
+``jax.export`` lowers the formulas on the CPU too: jax.export refuses custom calls that are not jax's
+own, and an artefact that called them would run only where this module registered the handlers.
+
+The abstract evaluations keep the input's type beyond shape and dtype: the sharding of the batch
+dimensions (sharding in types: ``jit`` over explicitly sharded inputs) and the mesh axes the value
+varies over inside ``shard_map`` (``check_vma``): dropping them gave the kernels' branch of
+``platform_dependent`` another type than the formula's, which ``shard_map`` refuses. The handlers are
+registered as batch partitionable, and each custom call says how many leading batch dimensions it
+has, so that XLA's SPMD partitioner runs the kernel on each device's shard of a batch-sharded array
+rather than gather the whole batch on every device.
 """
 
 from __future__ import annotations
 
 import functools
+import itertools
 from collections.abc import Callable
 from typing import Any, cast
 
@@ -32,6 +44,7 @@ from jax import Array
 from jax.core import ShapedArray
 from jax.extend.core import Primitive
 from jax.interpreters import ad, batching, mlir
+from jax.sharding import PartitionSpec
 
 from .. import _core, _kernels
 from ._namespace import XP
@@ -41,6 +54,7 @@ _ORDER = {True: "wxyz", False: "xyzw"}
 # jax's interpreter helpers carry no annotations; typed here once.
 _instantiate: Callable[[Any], Array] = ad.instantiate_zeros
 _undefined: Callable[[Any], bool] = ad.is_undefined_primal
+_spec: Callable[..., PartitionSpec] = PartitionSpec
 
 
 def _bind(prim: Primitive, *args: Any, scalar_first: bool) -> Array:
@@ -49,9 +63,14 @@ def _bind(prim: Primitive, *args: Any, scalar_first: bool) -> Array:
 
 
 def _register_targets() -> None:
-    """Register each handler with XLA's CPU runtime once (the registry is global to the process)."""
+    """Register each handler with XLA's CPU runtime once (the registry is global to the process), as
+    batch partitionable: each kernel loops over the leading batch dimensions of every operand and
+    result, so a shard of the batch is computed by the same call on the shard."""
+    partitionable = getattr(jax.ffi, "register_ffi_target_as_batch_partitionable", None)  # newer jax
     for name, capsule in _kernels.xla_handlers().items():
         jax.ffi.register_ffi_target(f"diffquat_{name}", capsule, platform="cpu")
+        if partitionable is not None:
+            partitionable(f"diffquat_{name}")
 
 
 _register_targets()
@@ -83,16 +102,63 @@ def _batched(prim: Primitive, args: tuple[Array, ...], dims: tuple[int | None, .
     return _bind(prim, *moved, **params), 0
 
 
+def _batch_partitioning(ctx: Any) -> dict[str, Any]:
+    """The attributes that let XLA's SPMD partitioners split a kernel's custom call along the leading
+    batch dimensions that all its operands and its result share (those of the matrix, its first
+    operand). GSPMD reads the number of batch dimensions of a target registered as batch partitionable
+    (``_register_targets``); Shardy, jax's default partitioner, reads a sharding rule: one factor per
+    batch dimension, shared by every operand and the result, and one per other dimension, each its
+    own (never split). Without them, ``jit`` over a batch-sharded array gathers the whole batch on
+    every device and runs the kernel on all of it there (``shard_map`` needs neither: each device
+    lowers its own shard)."""
+    if not all(isinstance(n, int) for aval in (*ctx.avals_in, *ctx.avals_out) for n in aval.shape):
+        return {}  # symbolic sizes (shape polymorphism): no rule to state, XLA keeps the call whole
+    batch = ctx.avals_in[0].ndim - 2
+    attributes: dict[str, Any] = {
+        "mhlo.frontend_attributes": mlir.ir_attribute({"num_batch_dims": str(batch)})
+    }
+    if getattr(jax.config, "jax_use_shardy_partitioner", False):
+        # Shardy names factors i, j, ..., z, z_1, z_2, ... in the order of their first use.
+        names = (chr(ord("i") + k) if k < 18 else f"z_{k - 17}" for k in itertools.count())
+        sizes: list[tuple[str, int]] = [(next(names), int(n)) for n in ctx.avals_in[0].shape[:batch]]
+        batch_names = [name for name, _ in sizes]
+
+        def mapping(aval: Any) -> str:
+            own = [(next(names), int(n)) for n in aval.shape[batch:]]
+            sizes.extend(own)
+            return "[" + ", ".join(batch_names + [name for name, _ in own]) + "]"
+
+        operands = ", ".join(mapping(aval) for aval in ctx.avals_in)
+        results = ", ".join(mapping(aval) for aval in ctx.avals_out)
+        factors = ", ".join(f"{name}={n}" for name, n in sizes)
+        rule = f"#sdy.op_sharding_rule<({operands})->({results}) {{{factors}}}>"
+        attributes["sdy.sharding_rule"] = mlir.ir.Attribute.parse(rule)
+    return attributes
+
+
+def _for_export(ctx: Any) -> bool:
+    """Whether ``ctx`` lowers a program for ``jax.export``. jax has no public way to ask; its lowering
+    parameters say so (``for_export``, which ``jax.export`` sets). Read defensively: where a jax has
+    no such field, the kernels are lowered and ``jax.export`` refuses them with its own error."""
+    params = getattr(getattr(ctx, "module_context", None), "lowering_parameters", None)
+    return bool(getattr(params, "for_export", False))
+
+
 def _kernel_lowering(prim: Primitive, kernel: str, formula: Callable[..., Array]) -> None:
     """The CPU lowering of ``prim``: a custom call of the handler for its storage order, for the
-    dtypes the kernels have (the handlers read float64 or else float32); any other is ``formula``."""
+    dtypes the kernels have (the handlers read float64 or else float32); any other dtype is
+    ``formula``, and so is a program lowered for ``jax.export`` (the artefact must run without
+    diffquat's handlers, and jax.export refuses custom calls that are not jax's own)."""
     fallback = mlir.lower_fun(formula, multiple_results=False)
 
     def lower(ctx: Any, *args: Any, scalar_first: bool) -> Any:
-        if ctx.avals_in[0].dtype not in (jax.numpy.float32, jax.numpy.float64):
+        if ctx.avals_in[0].dtype not in (jax.numpy.float32, jax.numpy.float64) or _for_export(ctx):
             return fallback(ctx, *args, scalar_first=scalar_first)
         # The order is in the target's name: the handlers take no attributes.
-        return jax.ffi.ffi_lowering(f"diffquat_{kernel}_{_ORDER[scalar_first]}")(ctx, *args)
+        rule = jax.ffi.ffi_lowering(
+            f"diffquat_{kernel}_{_ORDER[scalar_first]}", extra_attributes=_batch_partitioning(ctx)
+        )
+        return rule(ctx, *args)
 
     mlir.register_lowering(prim, lower, platform="cpu")
 
@@ -111,17 +177,34 @@ def _cotangent_formula(matrix: Array, q: Array, g: Array, *, scalar_first: bool)
     return _core.matrix_to_quaternion_cotangent(XP, matrix, q, g)
 
 
-m2q_p = _primitive(
-    "m2q",
-    lambda matrix, *, scalar_first: ShapedArray((*matrix.shape[:-2], 4), matrix.dtype),
-    _forward_formula,
-)
+def _result_type(arg: Any, core: int, trailing: tuple[int, ...], *others: Any) -> ShapedArray:
+    """The abstract value of a result with the batch dimensions of ``arg`` (all but its last
+    ``core``) followed by ``trailing``: the dtype of ``arg``, not weak, and the rest of its type, which
+    ``update`` keeps: the sharding of the batch dimensions (sharding in types; the trailing ones
+    unsharded) and the mesh axes it varies over inside ``shard_map``. Every argument must vary over
+    the same axes, as jax's own primitives require (a tangent or cotangent varies with its matrix)."""
+    mat = getattr(arg, "mat", None)  # jax before varying-axes types has none
+    if any(getattr(other, "mat", None) != mat for other in others):
+        raise ValueError(f"diffquat: arguments that vary over different mesh axes: {(arg, *others)}")
+    batch = arg.ndim - core
+    shape = (*arg.shape[:batch], *trailing)
+    sharding = getattr(arg, "sharding", None)  # jax before sharding in types has none
+    if sharding is None:
+        return cast(ShapedArray, arg.update(shape=shape, weak_type=False))
+    spec = (*sharding.spec, *(None,) * (arg.ndim - len(sharding.spec)))
+    sharding = sharding.update(spec=_spec(*spec[:batch], *(None,) * len(trailing)))
+    return cast(ShapedArray, arg.update(shape=shape, weak_type=False, sharding=sharding))
+
+
+m2q_p = _primitive("m2q", lambda matrix, *, scalar_first: _result_type(matrix, 2, (4,)), _forward_formula)
 m2q_tangent_p = _primitive(
-    "m2q_tangent", lambda matrix, q, dm, *, scalar_first: ShapedArray(q.shape, q.dtype), _tangent_formula
+    "m2q_tangent",
+    lambda matrix, q, dm, *, scalar_first: _result_type(q, 1, (4,), matrix, dm),
+    _tangent_formula,
 )
 m2q_cotangent_p = _primitive(
     "m2q_cotangent",
-    lambda matrix, q, g, *, scalar_first: ShapedArray(matrix.shape, matrix.dtype),
+    lambda matrix, q, g, *, scalar_first: _result_type(matrix, 2, (3, 3), q, g),
     _cotangent_formula,
 )
 _kernel_lowering(m2q_p, "m2q_forward", _forward_formula)
