@@ -51,13 +51,16 @@ def matches(shape: tuple[int, ...], trailing: tuple[int, ...]) -> bool:
 
 def broadcasts(shapes: list[tuple[int, ...]]) -> bool:
     """Whether batch shapes broadcast against each other (NumPy's rule, from the right)."""
-    rank = max((len(s) for s in shapes), default=0)
+    # Plain loops: Dynamo (torch.compile fullgraph) cannot trace ``max`` over a generator.
+    rank = 0
+    for s in shapes:
+        rank = max(rank, len(s))
     for k in range(1, rank + 1):
-        sizes = [s[-k] for s in shapes if len(s) >= k]
         # ``== 1`` and ``==`` only (see ``matches``): symbolic sizes under torch.compile compare so.
-        big = [n for n in sizes if not n == 1]  # noqa: SIM201
-        if any(not n == big[0] for n in big[1:]):  # noqa: SIM201
-            return False
+        big = [s[-k] for s in shapes if len(s) >= k and not s[-k] == 1]  # noqa: SIM201
+        for n in big[1:]:
+            if not n == big[0]:  # noqa: SIM201
+                return False
     return True
 
 
@@ -214,7 +217,8 @@ class Backend:
 
         ``choose(x)``, given the first validated array in its compute dtype, may name another
         evaluation of the same map (a backend's fast path); one whose ``handles_nonfinite`` attribute
-        is true applies :func:`nonfinite_rows`'s rule itself."""
+        is true applies :func:`nonfinite_rows`'s rule itself, as the core functions named in
+        ``_core.NONFINITE_BY_ARITHMETIC`` do by their arithmetic."""
         fname = core_fn.__name__
         checked, dtype = self.validate(fname, *arrays)
         compute = self.compute_dtype(dtype)
@@ -222,7 +226,7 @@ class Backend:
         fn = core_fn if choose is None else choose(inputs[0])
         with self.guard(inputs[0]):
             out = fn(self.xp, *inputs, **options)
-            if not getattr(fn, "handles_nonfinite", False):
+            if not (getattr(fn, "handles_nonfinite", False) or fname in _core.NONFINITE_BY_ARITHMETIC):
                 rows = [(x, t) for x, t in zip(inputs, SHAPES[fname].values(), strict=True) if x is not None]
                 out = nonfinite_rows(self.xp, out, rows)
             if compute == dtype:

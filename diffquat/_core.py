@@ -49,6 +49,14 @@ def op(**trailing: tuple[int, ...]) -> Callable[[F], F]:
 CANONICAL: set[str] = set()
 
 
+# Core functions whose arithmetic already makes every entry of a non-finite row NaN (the backends'
+# rule, ``_backend.nonfinite_rows``), so that no selection is added after them: each output entry
+# reads a scale taken over the whole row (a NaN or an infinity in it makes the scale NaN). Skipping
+# the selection keeps the compiled program the core's own (tests/test_xla.py), and the rule itself is
+# tested for every op on every backend (tests/test_values.py).
+NONFINITE_BY_ARITHMETIC: set[str] = {"quaternion_to_matrix"}
+
+
 def canonical(fn: F) -> F:
     """Mark a core function whose result is a quaternion in canonical sign (see ``CANONICAL``)."""
     CANONICAL.add(fn.__name__)
@@ -207,7 +215,9 @@ def _unit_scale(xp: Any, w: Any, x: Any, y: Any, z: Any) -> tuple[Any, Any]:
     """The largest component of a quaternion (1 for the zero quaternion) and whether it is not the zero
     quaternion: the divisor and the mask of :func:`_unit_components`."""
     n2 = w * w + x * x + y * y + z * z
-    nonzero = n2 >= xp.finfo(n2.dtype).tiny
+    # "not below", not ">=": a NaN row must count as non-zero, so that the NaN reaches the scale and
+    # with it every entry of the row (NONFINITE_BY_ARITHMETIC), not only those that read it.
+    nonzero = ~(n2 < xp.finfo(n2.dtype).tiny)
     big = xp.maximum(xp.maximum(xp.abs(w), xp.abs(x)), xp.maximum(xp.abs(y), xp.abs(z)))
     return xp.where(nonzero, big, 1.0), nonzero
 
@@ -403,7 +413,10 @@ def _m2q_whole(xp: Any, matrix: Any, scalar_first: bool) -> tuple[tuple[Any, ...
     pivots, candidates = _m2q_candidates(_quarter(xp, matrix), 0.25)
     c = _m2q_pick_candidate(xp, pivots, candidates, scalar_first)
     big = xp.amax(xp.abs(c), axis=-1, keepdims=True)
-    c = c / big
+    # Component by component: XLA rewrites a division by a broadcast operand into a product with its
+    # reciprocal, and for a component near the largest finite number that reciprocal is subnormal,
+    # which XLA:CPU flushes to zero (the result was NaN).
+    c = join_quaternion(xp, *(u / big[..., 0] for u in split_quaternion(c, scalar_first)), scalar_first)
     scale = _m2q_scale(xp, *split_quaternion(c, scalar_first))[..., None]
     # c was built from a quarter of the matrix: 1 / |c_matrix| = 1 / (4 big |c / big|). Where that
     # underflows (entries near the largest finite number) so does the derivative it scales.
