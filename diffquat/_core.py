@@ -89,11 +89,12 @@ def join_quaternion(xp: Any, w: Any, x: Any, y: Any, z: Any, scalar_first: bool)
 
 def stack_matrix(xp: Any, entries: list[Any]) -> Any:
     """Nine row-major entries of shape ``batch`` into one ``(*batch, 3, 3)`` array: a single stack, or
-    where the namespace sets ``stack_rows`` (torch under ``torch.compile`` on CUDA), rows of three
-    stacked. Inductor writes a concatenation of more than eight inputs as one strided copy per input,
-    a quarter of a sector per store (on an H100 the ``quaternion_to_matrix`` forward moved 17% of the
-    copy bandwidth), and smaller ones as one kernel that writes whole rows (3.3x faster there). Eager
-    namespaces copy the output once more that way (numpy 1.2x slower), and XLA measured about the same."""
+    where the namespace sets ``stack_rows`` (torch's ``quaternion_to_matrix`` under
+    ``torch.compile``), rows of three stacked. Inductor writes a concatenation of more than eight
+    inputs as one strided copy per input, a quarter of a sector per store (on an H100 the
+    ``quaternion_to_matrix`` forward moved 17% of the copy bandwidth), and smaller ones as one kernel
+    that writes whole rows (3.3x faster there). Eager namespaces copy the output once more that way
+    (numpy 1.2x slower), and XLA measured about the same."""
     if getattr(xp, "stack_rows", False):
         return xp.stack([xp.stack(entries[i : i + 3], axis=-1) for i in (0, 3, 6)], axis=-2)
     flat = xp.stack(entries, axis=-1)
@@ -416,7 +417,8 @@ def _m2q_whole(xp: Any, matrix: Any, scalar_first: bool) -> tuple[tuple[Any, ...
     # Component by component: XLA rewrites a division by a broadcast operand into a product with its
     # reciprocal, and for a component near the largest finite number that reciprocal is subnormal,
     # which XLA:CPU flushes to zero (the result was NaN).
-    c = join_quaternion(xp, *(u / big[..., 0] for u in split_quaternion(c, scalar_first)), scalar_first)
+    w, x, y, z = (u / big[..., 0] for u in split_quaternion(c, scalar_first))
+    c = join_quaternion(xp, w, x, y, z, scalar_first)
     scale = _m2q_scale(xp, *split_quaternion(c, scalar_first))[..., None]
     # c was built from a quarter of the matrix: 1 / |c_matrix| = 1 / (4 big |c / big|). Where that
     # underflows (entries near the largest finite number) so does the derivative it scales.

@@ -124,6 +124,19 @@ def _vee_antisymmetric(m: Any) -> Any:
     return m[..., 2, 1] - m[..., 1, 2], m[..., 0, 2] - m[..., 2, 0], m[..., 1, 0] - m[..., 0, 1]
 
 
+def _solve(xp: Any, a: Any, b: Any) -> Any:
+    """``a^{-1} b`` for a small well-conditioned ``a`` (..., n, n) and ``b`` (..., n), by the inverse.
+
+    Not ``linalg.solve``: the derivative formulas are differentiated again (second derivatives, and
+    the torch binding's compiled path differentiates them as its forward), and torch 2.13's forward
+    rule of ``linalg.solve`` is not itself differentiable (its A^{-1} is a constant LU: jacfwd(jacfwd)
+    misses terms, pytorch/pytorch#196695) and is wrong under ``vmap`` (``vmap(hessian)`` of a solve
+    differs from the loop by up to 5e6 on rows after the first). ``inv``'s rule, ``-X dA X`` from its
+    own output X, differentiates to every order. An inverse is as accurate as a solve where ``a`` is
+    well conditioned, which is why the resolvent lifts its null direction (see ``_resolvent``)."""
+    return xp.matmul(xp.linalg.inv(a), b[..., None])[..., 0]
+
+
 def _procrustes_solve(xp: Any, rotation: Any, matrix: Any, x: Any) -> Any:
     """``R hat(z)`` with ``z = (tr(P) I - P + delta I)^{-1} vee(R^T X - X^T R)``, ``P = sym(R^T M)``.
 
@@ -157,7 +170,7 @@ def _procrustes_solve(xp: Any, rotation: Any, matrix: Any, x: Any) -> Any:
         ],
     )  # fmt: skip
     rhs = xp.stack(_vee_antisymmetric(xp.matmul(rt, x)), axis=-1)
-    z = xp.linalg.solve(b, rhs[..., None])[..., 0]
+    z = _solve(xp, b, rhs)
     return xp.matmul(rotation, _hat(xp, z))
 
 
@@ -231,16 +244,27 @@ def _resolvent(xp: Any, a: Any, q: Any, v: Any) -> Any:
     mat = _symmetric(xp, a)
     l0 = _dot(xp, q, xp.matmul(mat, q[..., None])[..., 0])
     size = xp.sum(xp.abs(a), axis=-1, keepdims=True)
+    floor = size > info.tiny**0.5
     # A = 0 (no eigenvector defined at all) gets delta = 1: a bounded, not a huge, gradient.
-    delta = xp.where(size > info.tiny**0.5, info.eps**0.5 * size, 1.0)
-    # C = A + (delta - l0) I, built entrywise (no eye: jax's strict rank promotion).
+    delta = xp.where(floor, info.eps**0.5 * size, 1.0)
+    # C = A + (delta - l0) I + kappa q q^T, built entrywise (no eye: jax's strict rank promotion). On
+    # q's complement C is A - l0 I + delta I; kappa q q^T lifts C's eigenvalue along q from delta to
+    # about |A| (kappa = sum|a|, 1 for A = 0), so C is as well conditioned as the gaps themselves, not
+    # 1/sqrt(eps). As q stays an eigenvector of A along any path, C^{-1} Pi v (orthogonal to q) does
+    # not depend on kappa, nor do its derivatives. Gaps l_j - l0 are at most 4 sum|a| (|A|_2 <= 2 sum|a|).
+    kappa = xp.where(floor, size, 1.0)[..., 0]
     shift = (delta - l0)[..., 0]
     flat = xp.stack(
-        [mat[..., i, j] + shift if i == j else mat[..., i, j] for i in range(4) for j in range(4)], axis=-1
+        [
+            (mat[..., i, j] + shift if i == j else mat[..., i, j]) + kappa * q[..., i] * q[..., j]
+            for i in range(4)
+            for j in range(4)
+        ],
+        axis=-1,
     )
     c = xp.reshape(flat, (*flat.shape[:-1], 4, 4))
     pv = v - _dot(xp, q, v) * q
-    w = xp.linalg.solve(c, pv[..., None])[..., 0]
+    w = _solve(xp, c, pv)
     return -(w - _dot(xp, q, w) * q)
 
 

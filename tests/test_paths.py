@@ -395,10 +395,10 @@ def _traced_ops(fn: Any, x: torch.Tensor) -> list[str]:
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16], ids=str)
 def test_compiled_public_function_traces_to_the_core_formula(scalar_first: bool, dtype: torch.dtype) -> None:
     """Under torch.compile the public functions hand inductor exactly the core formula followed by the
-    non-finite row rule: validation and dispatch add nothing to the graph and break nothing, so a
-    user's compiled code fuses with diffquat's as with a hand-written copy. In 16 bits the graph also
-    holds the float32 upcast and the cast back and, for a canonical-sign output, its
-    re-standardisation after the narrowing cast."""
+    non-finite row rule (where the formula's arithmetic does not already apply it): validation and
+    dispatch add nothing to the graph and break nothing, so a user's compiled code fuses with
+    diffquat's as with a hand-written copy. In 16 bits the graph also holds the float32 upcast and
+    the cast back and, for a canonical-sign output, its re-standardisation after the narrowing cast."""
     q = torch.randn(64, 4, dtype=dtype)
     m = dq.quaternion_to_matrix(q.float()).to(dtype)
     for public, core, x, trailing in (
@@ -407,7 +407,11 @@ def test_compiled_public_function_traces_to_the_core_formula(scalar_first: bool,
     ):
 
         def reference(t: torch.Tensor, core: Any = core, trailing: Any = trailing) -> torch.Tensor:
-            out = core(torch, t, scalar_first=scalar_first)
+            # quaternion_to_matrix: stacked by rows when compiled, and NaN rows by its own arithmetic
+            namespace = _dispatch._COMPILED if core is _core.quaternion_to_matrix else torch
+            out = core(namespace, t, scalar_first=scalar_first)
+            if core.__name__ in _core.NONFINITE_BY_ARITHMETIC:
+                return out  # type: ignore[no-any-return]
             return _backend.nonfinite_rows(torch, out, [(t, trailing)])  # type: ignore[no-any-return]
 
         ours = _traced_ops(lambda t, f=public: f(t, scalar_first=scalar_first), x)
@@ -421,13 +425,14 @@ def test_compiled_public_function_traces_to_the_core_formula(scalar_first: bool,
 
 
 @pytest.mark.parametrize("scalar_first", [True, False], ids=["wxyz", "xyzw"])
-def test_compiled_cuda_namespace_stacks_rows_with_the_same_values(scalar_first: bool) -> None:
-    """Under torch.compile, CUDA tensors take the core formula over ``_dispatch._CompiledCuda``, which
-    stacks the matrix by rows of three: inductor lowers a concatenation of more than eight inputs as
-    one strided copy per input, and one of at most eight as a single kernel. The values are those of
-    the single stack, bit for bit, and the traced graph holds no stack of more than eight."""
+def test_compiled_quaternion_to_matrix_stacks_rows_with_the_same_values(scalar_first: bool) -> None:
+    """Under torch.compile, ``quaternion_to_matrix`` takes the core formula over
+    ``_dispatch._COMPILED``, which stacks the matrix by rows of three: inductor lowers a concatenation
+    of more than eight inputs as one strided copy per input, and torch cannot compile reverse over
+    forward mode through a view of one. The values are those of the single stack, bit for bit, and
+    the compiled graph of the public function holds no stack of more than eight."""
     q = torch.randn(50, 4, dtype=torch.float64)
-    rows = _core.quaternion_to_matrix(_dispatch._COMPILED_CUDA, q, scalar_first=scalar_first)
+    rows = _core.quaternion_to_matrix(_dispatch._COMPILED, q, scalar_first=scalar_first)
     assert torch.equal(rows, _core.quaternion_to_matrix(torch, q, scalar_first=scalar_first))
     graphs: list[torch.fx.GraphModule] = []
 
@@ -436,8 +441,8 @@ def test_compiled_cuda_namespace_stacks_rows_with_the_same_values(scalar_first: 
         return gm.forward
 
     torch._dynamo.reset()
-    fn = lambda t: _core.quaternion_to_matrix(_dispatch._COMPILED_CUDA, t, scalar_first=scalar_first)  # noqa: E731
-    torch.compile(fn, backend=capture, fullgraph=True, dynamic=False)(q)
+    fn = lambda t: dq.quaternion_to_matrix(t, scalar_first=scalar_first)  # noqa: E731
+    assert torch.equal(torch.compile(fn, backend=capture, fullgraph=True, dynamic=False)(q), rows)
     (graph,) = graphs
     stacks = [len(node.args[0]) for node in graph.graph.nodes if node.target is torch.stack]
     assert stacks == [3, 3, 3, 3]

@@ -176,11 +176,13 @@ def matrix_to_rotation_6d(matrix: Tensor) -> Tensor:
 
 @documented(_rep.special_procrustes)
 def special_procrustes(matrix: Tensor) -> Tensor:
+    _dispatch.refuse_onnx("special_procrustes", "the projection onto SO(3)")
     return _B(_special_procrustes, matrix)
 
 
 @documented(_rep.symmetric_matrix_to_quaternion)
 def symmetric_matrix_to_quaternion(a: Tensor, *, scalar_first: bool = True) -> Tensor:
+    _dispatch.refuse_onnx("symmetric_matrix_to_quaternion", "the smallest eigenvector")
     return _B(
         _rep.symmetric_matrix_to_quaternion, a, scalar_first=scalar_first, eigenvector=_smallest_eigenvector
     )
@@ -188,6 +190,7 @@ def symmetric_matrix_to_quaternion(a: Tensor, *, scalar_first: bool = True) -> T
 
 @documented(_rep.fit_rotation)
 def fit_rotation(source: Tensor, target: Tensor, weights: Tensor | None = None) -> Tensor:
+    _dispatch.refuse_onnx("fit_rotation", "the least-squares rotation")
     return _B(_rep.fit_rotation, source, target, weights, procrustes=_special_procrustes)
 
 
@@ -320,3 +323,9 @@ def random_quaternions(
     )
     q = _B(_core.quaternions_from_uniform, uniform, scalar_first=scalar_first)
     return _B.cast_canonical(q, dtype, scalar_first)
+
+
+# torch.fx.symbolic_trace runs Python on Proxy objects, which have no shape or dtype to validate: it
+# records each public function as one call instead (a leaf), which runs it when the graph runs.
+for _name in __all__:
+    torch.fx.wrap(_name)

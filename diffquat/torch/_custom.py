@@ -1,5 +1,19 @@
-"""Custom derivatives for torch: one ``autograd.Function`` per core map whose library backward is
-unstable (SVD, eigh). The formulas live in the core, over ``xp``; this only registers them."""
+"""Custom derivatives for torch: one map whose library derivative is unstable (SVD, eigh) with its
+own rules, in both modes. The formulas live in the core, over ``xp``; this only registers them.
+
+Two forms of one map, because eager torch and graph capture each honour a different part of an
+``autograd.Function``:
+
+- Eager: a Function with ``forward``, ``backward``, ``jvp`` and ``generate_vmap_rule``. Autograd,
+  ``torch.func`` (``grad``, ``jacrev``, ``jvp``, ``jacfwd``, ``hessian``, ``vmap``) and dual tensors
+  (``torch.autograd.forward_ad``) call the rules, exact to every order.
+- Captured (``torch.compile``, ``torch.jit.trace``): no Function at all. Dynamo refuses one that
+  defines ``jvp`` ("Unsupported custom jvp", an error under ``fullgraph=True``), fails to vmap one
+  under ``hessian``, and without ``jvp`` differentiates its forward's operations under ``torch.func``
+  (``torch.func.jvp`` of the SVD at M = I: NaN); ``torch.jit.trace`` records one as a Python call that
+  TorchScript cannot save. So the map is written as plain operations whose autodiff *is* the custom
+  rule, to second order (:func:`_linearised`).
+"""
 
 from __future__ import annotations
 
@@ -8,8 +22,38 @@ from typing import Any
 
 import torch
 from torch import Tensor
+from torch.autograd.forward_ad import _set_fwd_grad_enabled
+from torch.jit._trace import is_tracing
 
 Formula = Callable[[Any, Tensor, Tensor, Tensor], Tensor]
+
+
+def _linearised(forward: Callable[[Any, Tensor], Tensor], tangent: Formula, x: Tensor) -> Tensor:
+    """``forward(x)`` in value, whose first and second derivatives under autodiff of its operations
+    are those of the rules: the form for graph capture (compiled, traced), where a Function's own
+    rules are not all honoured.
+
+    With ``x0 = x.detach()``, ``y0 = forward(x0)``, ``dx = x - x0`` (zero in value, the identity in
+    derivative) and ``T(x, y, dx)`` the tangent, linear in ``dx``:
+
+    - ``g = y0 + T(x, y0, dx)``: every term of ``g'`` but ``T(x, y0, .)`` is multiplied by ``dx = 0``,
+      so ``g' = y'``, exact to first order.
+    - ``h = y0 + (T(x, g, dx) + T(x0, y0, dx)) / 2``: the first derivative is still ``y'``. The second
+      derivative of ``T(x, g, dx)`` meets each mixed term ``S(d, e) = T_x(x, y, d)[e] + T_y(x, y,
+      d)[y' e]`` twice, once with ``dx`` in each slot, and ``S(d, e) + S(e, d) = 2 y''[d, e]`` (y'' is
+      symmetric); ``T(x0, y0, dx)`` is linear in ``x``. The half gives ``y''`` exactly.
+
+    The value stays ``y0``: ``T(x, y, 0) = 0`` (a linear solve of zero). Third derivatives are not
+    those of the map; the eager Function is exact to every order."""
+    x0 = x.detach()
+    dx = x - x0
+    y0 = forward(torch, x0)
+    # y0 carries a zero tangent rather than none: torch 2.13's compiled vmap(jvp) fails on a matmul of
+    # a batched tensor without a tangent by one with ("Tensor device mismatch"). 0 * sum(dx) is
+    # exactly 0 and broadcasts against y0 ((..., 3, 1) for a matrix, (..., 1) for a vector).
+    y0 = y0 + 0 * dx.sum(-1, keepdim=True)
+    g = y0 + tangent(torch, x, y0, dx)
+    return y0 + 0.5 * (tangent(torch, x, g, dx) + tangent(torch, x0, y0, dx))
 
 
 def custom_derivative(
@@ -17,35 +61,51 @@ def custom_derivative(
 ) -> Callable[[Any, Tensor], Tensor]:
     """``forward(xp, x) -> y`` with the derivatives ``tangent(xp, x, y, dx) -> dy`` (forward mode)
     and ``cotangent(xp, x, y, gy) -> gx`` (reverse mode). Both formulas are written with
-    differentiable torch operations on ``x`` and on the saved *output* ``y`` (whose own gradient is
-    this Function again), so double backward is exact. ``generate_vmap_rule``: the forward and the
-    formulas are batched torch code, so ``torch.func.vmap`` can run them as they are.
+    differentiable torch operations on ``x`` and on the *output* ``y`` (whose own derivative is this
+    map again), so every higher order is exact in eager mode, in either order of the two modes.
+    ``generate_vmap_rule``: the forward and the formulas are batched torch code, so
+    ``torch.func.vmap`` runs them as they are."""
 
-    No ``jvp`` (forward mode): torch 2.13's Dynamo refuses to trace a Function that defines one
-    (``Unsupported custom jvp``), and ``torch.compile(fullgraph=True)`` matters more. ``tangent`` is
-    kept in the signature for symmetry with the jax binding, which uses it."""
-    del tangent
+    class Eager(torch.autograd.Function):
+        """Returns ``(y, copy of x)``. The copy is what ``jvp`` reads x from: autograd calls ``jvp``
+        with forward grad mode off, which hides the tangents of an outer forward level, so that
+        jacfwd(jacfwd(f)) would silently drop the second-order terms (pytorch/pytorch#197867). With
+        the mode back on, the saved *input* would carry this level's own tangent (an error: "a
+        forward grad that itself has a forward gradient at the same level"); an *output* has none
+        yet, and carries every outer level's, like ``y``. Its tangent is ``dx``, its cotangent
+        adds to x's."""
 
-    class Function(torch.autograd.Function):
         generate_vmap_rule = True
 
         @staticmethod
-        def forward(x: Tensor) -> Tensor:
-            return forward(torch, x)
+        def forward(x: Tensor) -> tuple[Tensor, Tensor]:
+            # contiguous: a strided view (eigh's column) as the output of a Function trips dual
+            # tensors (forward_ad wants its tangent to be a view of the same layout).
+            return forward(torch, x).contiguous(), x.clone()
 
         @staticmethod
-        def setup_context(ctx: Any, inputs: tuple[Tensor], output: Tensor) -> None:
-            ctx.save_for_backward(inputs[0], output)
+        def setup_context(ctx: Any, inputs: tuple[Tensor], output: tuple[Tensor, Tensor]) -> None:
+            y, x = output
+            ctx.save_for_backward(inputs[0], y)
+            ctx.save_for_forward(x, y)
 
         @staticmethod
-        def backward(ctx: Any, grad: Tensor) -> Tensor:
+        def backward(ctx: Any, grad: Tensor, grad_x: Tensor) -> Tensor:
             x, y = ctx.saved_tensors
-            return cotangent(torch, x, y, grad)
+            return cotangent(torch, x, y, grad) + grad_x
 
-    Function.__name__ = Function.__qualname__ = f"_{forward.__name__}_function"
+        @staticmethod
+        def jvp(ctx: Any, dx: Tensor) -> tuple[Tensor, Tensor]:
+            x, y = ctx.saved_tensors
+            with _set_fwd_grad_enabled(True):
+                return tangent(torch, x, y, dx), dx
+
+    Eager.__name__ = Eager.__qualname__ = f"_{forward.__name__}_eager"
 
     def bound(xp: Any, x: Tensor) -> Tensor:
-        return Function.apply(x)  # type: ignore[no-untyped-call]
+        if torch.compiler.is_compiling() or is_tracing():  # type: ignore[no-untyped-call]
+            return _linearised(forward, tangent, x)
+        return Eager.apply(x)[0]  # type: ignore[no-untyped-call]
 
     bound.__name__ = forward.__name__  # the Backend validates arguments by this name
     return bound

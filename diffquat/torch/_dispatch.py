@@ -28,6 +28,7 @@ reference.
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -83,13 +84,14 @@ def _triton() -> Any:
     return _triton
 
 
-class _CompiledCuda:
-    """``torch`` as the core's namespace under ``torch.compile`` for CUDA tensors: the core's matrices
-    are stacked by rows (``_core.stack_matrix``), which inductor's CUDA code generation writes as one
-    kernel of whole rows (4.2x faster forward on an H100 than the flat stack of nine). On the CPU
-    inductor lowers every concatenation as copies, and rows measured mixed there (``quaternion_to_matrix``
-    forward 1.8x faster, ``axis_angle_to_matrix`` 1.17x slower at N = 262144), so the CPU keeps
-    ``torch``. The same formula either way, only stacked differently: the same values."""
+class _Compiled:
+    """``torch`` as the core's namespace for ``quaternion_to_matrix`` under ``torch.compile``: the
+    matrix is stacked by rows (``_core.stack_matrix``), which inductor writes as one kernel of whole
+    rows (forward 4.2x faster on an H100 than the flat stack of nine, 1.8x on the CPU at N = 262144),
+    and which torch 2.13 compiles under reverse-over-forward mode, where the view of a nine-way stack
+    fails (``jacrev(jacfwd(f))``: "ViewBackward0 returned an invalid gradient ... expected device cpu
+    but got meta"). The other maps keep ``torch``: rows measured 1.17x slower for
+    ``axis_angle_to_matrix`` on the CPU. The same formula, only stacked differently: the same values."""
 
     stack_rows = True
 
@@ -97,12 +99,12 @@ class _CompiledCuda:
         return getattr(torch, name)
 
 
-_COMPILED_CUDA = _CompiledCuda()
+_COMPILED = _Compiled()
 
 
 def _formula_q2m(xp: Any, q: Tensor, *, scalar_first: bool = True) -> Tensor:
-    """The core formula, stacked by rows where it is compiled for CUDA (see :class:`_CompiledCuda`)."""
-    namespace = _COMPILED_CUDA if q.is_cuda and torch.compiler.is_compiling() else xp
+    """The core formula, stacked by rows where it is compiled (see :class:`_Compiled`)."""
+    namespace = _COMPILED if torch.compiler.is_compiling() else xp
     r: Tensor = _core.quaternion_to_matrix(namespace, q, scalar_first=scalar_first)
     return r
 
@@ -127,3 +129,29 @@ def matrix_to_quaternion(matrix: Tensor) -> Evaluation:
     if matrix.is_cuda and (triton := _triton()) is not None:
         return triton.matrix_to_quaternion
     return _core.matrix_to_quaternion
+
+
+def exporting_to_onnx() -> bool:
+    """Whether an ONNX exporter is tracing this call. ``torch.onnx.is_in_onnx_export`` says so for the
+    TorchScript exporter and the dynamo exporter's non-strict pass; Dynamo (the strict pass, which the
+    exporter falls back to) folds that function to False, so the exporter's own flag is read as well
+    (a module attribute, which Dynamo reads and guards on). Neither module is imported here: where
+    ``torch.onnx`` was never imported, nothing is exporting."""
+    onnx = sys.modules.get("torch.onnx")
+    if onnx is None:
+        return False
+    flags = sys.modules.get("torch.onnx._internal.exporter._flags")
+    return bool(onnx.is_in_onnx_export() or getattr(flags, "_is_onnx_exporting", False))
+
+
+def refuse_onnx(fname: str, what: str) -> None:
+    """Raise ``NotImplementedError`` naming ``fname`` (and ``what`` it is) if an ONNX export traces this
+    call: ONNX has no SVD or symmetric eigensolver operator, so the map cannot be exported, and without
+    this the exporters fail later with a message about ``aten::linalg_svd`` that names no diffquat
+    function."""
+    if exporting_to_onnx():
+        raise NotImplementedError(
+            f"{fname}: {what} cannot be exported to ONNX: it takes an SVD or a symmetric eigendecomposition, "
+            "and ONNX has no such operator. Export a '6d' or 'quaternion' head (both export), or deploy "
+            "with torch.export or TorchScript, which run it."
+        )

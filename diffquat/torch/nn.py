@@ -24,6 +24,7 @@ from torch import Tensor, nn
 import diffquat.torch as _dq
 
 from .. import _heads
+from . import _dispatch
 
 __all__ = ["REPRESENTATIONS", "RotationHead", "representation_size", "representation_to_matrix"]
 
@@ -39,9 +40,16 @@ def representation_to_matrix(raw: Tensor, representation: str) -> Tensor:
     """Rotation matrices ``(..., 3, 3)`` from raw outputs ``(..., n)``, ``n = representation_size(...)``.
 
     Differentiable everywhere the representation is; any raw output gives a rotation (for example a
-    zero quaternion gives the identity).
+    zero quaternion gives the identity). The ``"9d"`` and ``"10d"`` maps (SVD and eigh) cannot be
+    exported to ONNX, which has no such operator: exporting them raises ``NotImplementedError``.
     """
+    if representation in ("9d", "10d"):
+        _dispatch.refuse_onnx("representation_to_matrix", f"the {representation!r} representation")
     return _heads.representation_to_matrix(torch, _dq, raw, representation)
+
+
+# A leaf of torch.fx.symbolic_trace, as the functions of diffquat.torch (see there).
+torch.fx.wrap("representation_to_matrix")
 
 
 class RotationHead(nn.Module):
