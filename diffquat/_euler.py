@@ -21,7 +21,6 @@ from ._core import (
     Conversion,
     computed_once,
     join_quaternion,
-    matrix_to_quaternion,
     op,
     quaternion_to_matrix,
     split_quaternion,
@@ -137,12 +136,14 @@ def _quaternion_to_euler(
     if not proper:
         third_slot = third_slot * sign
         middle = middle - 0.5 * math.pi
-    out = [first_slot, middle, third_slot] if extrinsic else [third_slot, middle, first_slot]
     # Into [-pi, pi): the sums above reach +-2 pi. A shift by a constant, so the gradient is untouched.
-    angles = [
-        xp.where(x >= math.pi, x - 2.0 * math.pi, xp.where(x < -math.pi, x + 2.0 * math.pi, x)) for x in out
-    ]
-    result = xp.stack(angles, axis=-1)
+    # The middle angle is in its documented range already (a half-turn's pi is not -pi).
+    first_slot, third_slot = (
+        xp.where(x >= math.pi, x - 2.0 * math.pi, xp.where(x < -math.pi, x + 2.0 * math.pi, x))
+        for x in (first_slot, third_slot)
+    )
+    out = [first_slot, middle, third_slot] if extrinsic else [third_slot, middle, first_slot]
+    result = xp.stack(out, axis=-1)
     return result * (180.0 / math.pi) if degrees else result
 
 
@@ -168,19 +169,186 @@ def quaternion_to_euler_angles(
     return _quaternion_to_euler(xp, "quaternion_to_euler_angles", q, convention, degrees, scalar_first)
 
 
+def _degenerate(xp: Any, y: Any, x: Any) -> Any:
+    """Where ``atan2(y, x)`` has no finite derivative: ``x^2 + y^2`` below the smallest normal number
+    (its derivative divides by that). For a rotation matrix no pair of entries read below gets there
+    where it is used; a matrix far off SO(3) (a zero column) can."""
+    return y * y + x * x < xp.finfo(x.dtype).tiny
+
+
+def _wrap(xp: Any, x: Any) -> Any:
+    """An angle from ``atan2`` (in [-pi, pi]) into [-pi, pi): +pi (and, in float32, values that round to
+    it) become -pi. A shift by a constant, so the derivative is untouched."""
+    return xp.where(x >= math.pi, x - 2.0 * math.pi, x)
+
+
+def _entries(xp: Any, matrix: Any) -> tuple[list[Any], Any]:
+    """The nine entries of ``(..., 3, 3)`` matrices, row-major, each of shape ``(...)``, scaled by
+    :func:`_power_of_two`, and whether all nine are finite.
+
+    Where the namespace has ``unstack`` (jax; numpy >= 2.1), rows and then entries are unstacked, as
+    in ``_core._Unstacked``: reverse mode transposes that into stacks, where nine indexed entries
+    become nine zero-padded copies of the matrix (jax forward + backward 1.3x faster at N = 262144
+    than indexing, and 1.4x faster than the copy below, which XLA does not see through). torch's
+    entries are views with a stride of 9, on which its elementwise kernels ran 9-16x slower (atan2
+    the most): one stack copies them into contiguous rows, taken apart by iteration (``unbind``), whose
+    reverse mode is again one stack."""
+    unstack = getattr(xp, "unstack", None)
+    if unstack is not None:
+        largest = xp.amax(xp.abs(matrix), axis=(-2, -1))
+        matrix = matrix * _power_of_two(xp, largest)[..., None, None]
+        entries = [e for row in unstack(matrix, axis=-2) for e in unstack(row, axis=-1)]
+    else:
+        rows = xp.stack(list(xp.moveaxis(xp.reshape(matrix, (*matrix.shape[:-2], 9)), -1, 0)), axis=0)
+        largest = xp.amax(xp.abs(rows), axis=0)
+        entries = list(rows * _power_of_two(xp, largest))
+    # max |entry| is infinite or NaN exactly where an entry is; isfinite raises no warning in numpy.
+    return entries, xp.isfinite(largest)
+
+
+def _power_of_two(xp: Any, largest: Any) -> Any:
+    """A power of two that brings the largest entry of a matrix, ``largest``, into [2^-h, 2^h], with
+    h = log2(1 / tiny) / 4 rounded down (31 in float32, 255 in float64); 1 where it is there already.
+
+    The angles are read off ratios of entries, so a positive factor changes none of them, but squares
+    of entries (the middle angle's norm, the lock rule, atan2's own derivative) overflow above about
+    2^63 (float32: 1.8e19), and the lock rule, which compares a square with 1e-14 (2^-46.5) times a
+    square, loses its digits below about 2^-40; a matrix whose largest entry is in [2^-h, 2^h] has
+    room for both. A power of two is exact, and it is built from comparisons and constants only, so
+    it carries no derivative: the angles' derivative is the one of the scaled matrix, times the
+    factor, which is exactly the derivative of the unscaled one. Five ranges: 2^(+-2h) and 2^(+-4h)
+    cover every finite value, the smallest subnormal included. A NaN or an infinity gives NaN angles
+    anyway."""
+    h = int(-math.log2(float(xp.finfo(largest.dtype).tiny))) // 4
+    factor = xp.ones_like(largest)
+    factor = xp.where(largest < 2.0**-h, 2.0 ** (2 * h), factor)
+    factor = xp.where(largest < 2.0 ** (-3 * h), 2.0 ** (4 * h), factor)
+    factor = xp.where(largest > 2.0**h, 2.0 ** (-2 * h), factor)
+    factor = xp.where(largest > 2.0 ** (3 * h), 2.0 ** (-4 * h), factor)
+    # The zero matrix has nothing to scale, and its derivatives (of angles read off zeros) must not be
+    # multiplied by 2^(4h).
+    return xp.where(largest > 0.0, factor, 1.0)
+
+
+def _signed(sign: int, x: Any) -> Any:
+    return x if sign > 0 else -x
+
+
 @op(matrix=(3, 3))
-def matrix_to_euler_angles(
-    xp: Any,
-    matrix: Any,
-    convention: str,
-    *,
-    degrees: bool = False,
-    to_quaternion: Conversion = matrix_to_quaternion,
-) -> Any:
+def matrix_to_euler_angles(xp: Any, matrix: Any, convention: str, *, degrees: bool = False) -> Any:
     """Euler angles of a rotation matrix: shape ``(..., 3, 3)`` to ``(..., 3)``.
 
-    Through ``matrix_to_quaternion``, then exactly as ``quaternion_to_euler_angles`` (scipy's rule, all
-    12 axis sequences; third angle 0 at a gimbal lock, no warning, finite gradients)."""
-    parse_convention("matrix_to_euler_angles", convention)
-    q = to_quaternion(xp, matrix)
-    return _quaternion_to_euler(xp, "matrix_to_euler_angles", q, convention, degrees, True)
+    Args:
+        matrix: rotation matrices, shape ``(..., 3, 3)``, column-vector convention.
+        convention: as in ``euler_angles_to_quaternion`` (scipy's rule, all 12 axis sequences).
+        degrees: whether to return degrees (default radians).
+
+    Returns:
+        Angles, shape ``(..., 3)``, in the order of the letters of ``convention``: the first and third
+        in [-pi, pi), the middle one in [0, pi] for proper sequences (e.g. ``"ZXZ"``) and in
+        [-pi/2, pi/2] for Tait-Bryan ones (e.g. ``"XYZ"``). At a gimbal lock (middle angle within
+        1e-7 rad of 0 or pi, resp. of +-pi/2) the third angle is 0 and the first carries the rotation
+        about the aligned axes, as scipy; no warning, no error, and finite gradients (the angles jump
+        there, as they must). For a rotation matrix, the angles of
+        ``quaternion_to_euler_angles(matrix_to_quaternion(matrix))``, to rounding (which the route
+        through the quaternion amplifies near a lock).
+
+    Method: the angles are read off the entries (no quaternion in between), one ``atan2`` each. Write
+    the convention intrinsically, ``R = R_p(u) R_q(v) R_r(w)`` (an extrinsic convention is the
+    intrinsic one of its letters reversed, its angles reversed: ``w`` is its first angle). The middle
+    angle ``v`` is read off row ``p``. Of ``u`` and ``w``, the one that is 0 at a lock (the
+    convention's third angle) is read off directly: ``w`` off row ``p``, resp. ``u`` off column ``r``
+    (column ``p`` for proper sequences). The other is read off what is left once that rotation is
+    undone: column ``q`` of ``matrix @ R_r(-w)``, resp. row ``q`` of ``R_p(-u) @ matrix``, entries
+    of size 1. In float32, 0.04 rad and more from a lock, the angles are within 1.3 ulp of pi
+    (3.1e-7 rad) of those of the same matrix in float64; the textbook formula, each angle off its own
+    two entries, is within 1.05 ulp (its atan2 alone), and the route through the quaternion erred by
+    up to 20 ulp (4.7e-6 rad). The undoing costs at most (1 + sqrt 2) 2^-24 rad of rounding (sums of
+    two products), and is what lets a matrix near a lock round-trip (below).
+
+    Matrices off SO(3) get the angles of that reading. So any positive multiple of a rotation gives the
+    rotation's angles (a matrix whose largest entry is far from 1, beyond 2^+-31 in float32, is first
+    scaled by a power of two, exactly), and the angles of a matrix that is off SO(3) by rounding
+    errors rebuild it to within a few of those errors, at and near a gimbal lock too: the two angles
+    read off entries of the size of the distance to the lock are each uncertain by rounding / distance
+    there, but the second one follows the first (reading both directly, a float32 product of rotations
+    1e-6 rad from a lock came back up to 2 away). Any finite matrix gives finite angles (an angle read
+    off two entries that are both 0 is 0) and finite gradients, of size 1 / (largest entry), wherever
+    that is a finite number; a NaN or an infinite entry gives NaN angles.
+    """
+    axes, extrinsic = parse_convention("matrix_to_euler_angles", convention)
+    # Intrinsically R = R_i(u) R_j(v) R_k(w); extrinsic angles are (w, v, u) of the reversed letters.
+    i, j, k = axes[::-1] if extrinsic else axes
+    proper = i == k
+    if proper:
+        k = 3 - i - j  # the axis not in the sequence
+    sign = (i - j) * (j - k) * (k - i) // 2  # +1 for an even permutation of (x, y, z), -1 for odd
+    entries, finite = _entries(xp, matrix)
+
+    def m(row: int, col: int) -> Any:
+        return entries[3 * row + col]
+
+    # Row i of R is row i of R_j(v) R_k(w): it fixes v and w. The (sin w, cos w) pair in it, (m_ij, m_ik)
+    # for proper sequences and (m_ii, m_ij) for Tait-Bryan ones, is scaled by n = |sin v|, resp.
+    # |cos v|, the distance from the lock; the row's third entry is cos v, resp. sin v. Column k
+    # (proper: i) of R_i(u) R_j(v) holds (sin u, cos u) scaled by n likewise.
+    if proper:
+        w_pair, axis_entry = (m(i, j), _signed(sign, m(i, k))), m(i, i)
+        u_pair = (m(j, i), _signed(-sign, m(k, i)))
+    else:
+        w_pair, axis_entry = (_signed(-sign, m(i, j)), m(i, i)), _signed(sign, m(i, k))
+        u_pair = (_signed(-sign, m(j, k)), m(k, k))
+    n2 = w_pair[0] * w_pair[0] + w_pair[1] * w_pair[1]
+    tiny = xp.finfo(n2.dtype).tiny
+    # The middle angle has a kink at the lock, like |x| at 0. n = sqrt(n2 + tiny) keeps the derivative
+    # finite at n2 = 0, where it is 0 (dn/dm = m / n, m = 0 there), and all higher ones, with no where
+    # (which costs torch 20x a multiplication); it is sqrt(n2) to rounding for n2 > tiny / eps (1e-31
+    # in float32), deep inside the lock. Tait-Bryan: atan2(+-1, sqrt(tiny)) is +-pi/2 exactly, and the
+    # pair is never (0, 0). Proper: sqrt(tiny) (2^-63, 2^-511) is taken off again, so that the middle
+    # angle of the identity is exactly 0, and a zero row (a matrix far off SO(3)) is read as (0, 1).
+    n = xp.sqrt(n2 + tiny)
+    if proper:
+        n = n - math.sqrt(tiny)
+        middle = xp.atan2(n, xp.where(_degenerate(xp, n, axis_entry), 1.0, axis_entry))
+    else:
+        # A zero row (a matrix far off SO(3)): atan2(0, sqrt(tiny)) has the derivative 1 / sqrt(tiny)
+        # in the axis entry, which the power-of-two scaling of a tiny matrix would take to infinity.
+        empty = axis_entry * axis_entry + n2 < tiny
+        middle = xp.atan2(axis_entry, xp.where(empty, 1.0, n))
+    # scipy's rule on the angle from the lock, atan2(n, |axis_entry|) <= tol, without evaluating it:
+    # n^2 <= tan(tol)^2 axis_entry^2. Exact where that atan2 would round; "+ tiny" also counts as
+    # locked a row whose pair is too small to take an atan2 of (a matrix far off SO(3)).
+    lock = n2 <= math.tan(GIMBAL_LOCK_TOL) ** 2 * (axis_entry * axis_entry) + tiny
+    # The angle that is 0 at a lock (scipy's rule: the convention's third), read off directly: w off row
+    # i, or extrinsically u off its column. Selected before the atan2: at an exact lock the pair is
+    # (0, 0), where atan2 has no derivative; at a lock it is (0, 1), angle 0 with a zero gradient.
+    if extrinsic:
+        zeroed_pair, zero = u_pair, lock | _degenerate(xp, *u_pair)
+    else:
+        zeroed_pair, zero = w_pair, lock  # w_pair is not degenerate off the lock
+    zy, zx = xp.where(zero, 0.0, zeroed_pair[0]), xp.where(zero, 1.0, zeroed_pair[1])
+    zeroed = xp.atan2(zy, zx)
+    # The other angle, from the entries of size 1 left once the zeroed rotation is undone, so that it
+    # absorbs the uncertainty of the zeroed one near a lock (see the docstring), and at a lock (zeroed
+    # = 0) carries the rotation about the aligned axes. Intrinsically u, off column j of
+    # M R_k(-w) = R_i(u) R_j(v): R_i(u) e_j = (cos u) e_j + sign (sin u) e_k. Extrinsically w, off row j
+    # of R_i(-u) M = R_j(v) R_k(w): e_j^T R_k(w), which is (cos w, -sign sin w) at (j, k) for proper
+    # sequences (k = i), (sign sin w, cos w) at (i, j) for Tait-Bryan ones. Each as y0 cz + y1 sz over
+    # x0 cz + x1 sz:
+    if extrinsic and proper:
+        y0, y1, x0, x1 = _signed(-sign, m(j, k)), -m(k, k), m(j, j), _signed(sign, m(k, j))
+    elif extrinsic:
+        y0, y1, x0, x1 = _signed(sign, m(j, i)), m(k, i), m(j, j), _signed(sign, m(k, j))
+    elif proper:
+        y0, y1, x0, x1 = _signed(sign, m(k, j)), -m(k, k), m(j, j), _signed(-sign, m(j, k))
+    else:
+        y0, y1, x0, x1 = _signed(sign, m(k, j)), m(k, i), m(j, j), _signed(sign, m(j, i))
+    y, x = y0 * zx + y1 * zy, x0 * zx + x1 * zy
+    carried = xp.atan2(y, xp.where(_degenerate(xp, y, x), 1.0, x))
+    first, third = _wrap(xp, carried), _wrap(xp, zeroed)  # the middle angle needs no wrapping
+    result = xp.stack([first, middle, third], axis=-1)
+    # The angles read eight of the nine entries, and atan2 of an infinite one is finite: a matrix with a
+    # NaN or an infinity anywhere gives NaN angles, decided here (a selection: the derivative of a
+    # finite matrix is unchanged).
+    result = xp.where(finite[..., None], result, math.nan)
+    return result * (180.0 / math.pi) if degrees else result

@@ -162,7 +162,9 @@ def euler_angles_to_matrix(angles: ArrayLike, convention: str, *, degrees: bool 
 
 @documented(_euler.matrix_to_euler_angles)
 def matrix_to_euler_angles(matrix: ArrayLike, convention: str, *, degrees: bool = False) -> NDArray[Any]:
-    return _B(_euler.matrix_to_euler_angles, matrix, convention=convention, degrees=degrees)
+    # A NaN or an infinite entry gives NaN angles by design: no floating-point warnings on the way there.
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        return _B(_euler.matrix_to_euler_angles, matrix, convention=convention, degrees=degrees)
 
 
 @documented(_euler.euler_angles_to_quaternion)

@@ -230,13 +230,7 @@ def euler_angles_to_matrix(angles: Tensor, convention: str, *, degrees: bool = F
 
 @documented(_euler.matrix_to_euler_angles)
 def matrix_to_euler_angles(matrix: Tensor, convention: str, *, degrees: bool = False) -> Tensor:
-    return _B(
-        _euler.matrix_to_euler_angles,
-        matrix,
-        convention=convention,
-        degrees=degrees,
-        to_quaternion=_matrix_to_quaternion,
-    )
+    return _B(_euler.matrix_to_euler_angles, matrix, convention=convention, degrees=degrees)
 
 
 @documented(_euler.euler_angles_to_quaternion)
