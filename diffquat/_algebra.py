@@ -264,7 +264,8 @@ def quaternion_slerp(xp: Any, p: Any, q: Any, t: Any, *, scalar_first: bool = Tr
 
     Args:
         p, q: quaternions, shape ``(..., 4)``, any non-zero norm (the zero quaternion is the identity).
-        t: interpolation parameters, shape ``(...)`` (no trailing axis), same dtype; the batch shapes of
+        t: interpolation parameters, shape ``(...)`` (no trailing axis: one ``t`` per rotation), or a
+            Python number (weak in the promotion: a float32 pair stays float32); the batch shapes of
             ``p``, ``q`` and ``t`` broadcast against each other.
         scalar_first: storage order of ``p``, ``q`` and of the result.
 

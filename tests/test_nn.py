@@ -262,3 +262,39 @@ def test_jax_heads_train_inside_flax_and_equinox_models(framework: str, represen
         params, opt_state, (_, grads) = step(params, opt_state)
         assert all(bool(jnp.all(jnp.isfinite(g))) for g in jax.tree_util.tree_leaves(grads))
     assert float(loss(params)) < 0.5 * first
+
+
+def _readme_autocast_step() -> str:
+    """The README's autocast training step (the python block that follows its mention of autocast)."""
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    start = text.index("```python", text.index("A training step under `torch.autocast`"))
+    return text[start + len("```python") : text.index("```", start + 1)]
+
+
+@pytest.mark.parametrize("representation", tnn.REPRESENTATIONS)
+def test_readme_autocast_training_step_runs_with_every_head(representation: str) -> None:
+    """The README's ``torch.autocast(bfloat16)`` step, as written there, for each head: the head
+    returns the autocast dtype (bfloat16, computed in float32 inside), the loss of bfloat16 and float32
+    matrices promotes to float32 (it raised TypeError before), and the step leaves every parameter
+    finite, with finite gradients, and moved."""
+    code = _readme_autocast_step()
+    assert 'representation = "6d"' in code
+    code = code.replace('representation = "6d"', f"representation = {representation!r}")
+    torch.manual_seed(0)
+    scope: dict[str, Any] = {}
+
+    # Run the block up to the optimizer step, keep copies of the parameters, then step.
+    head, tail = code.split("optimizer.step()")
+    exec(head, scope)  # the README's own code
+    params = [*scope["backbone"].parameters(), *scope["head"].parameters()]
+    before = [p.detach().clone() for p in params]
+    exec("optimizer.step()" + tail, scope)
+    assert scope["predicted"].dtype == torch.bfloat16
+    assert scope["loss"].dtype == torch.float32
+    assert bool(torch.isfinite(scope["loss"]))
+    for p in params:
+        assert p.grad is not None and bool(torch.all(torch.isfinite(p.grad)))
+        assert bool(torch.all(torch.isfinite(p)))
+    assert any(not torch.equal(p.detach(), b) for p, b in zip(params, before, strict=True))
