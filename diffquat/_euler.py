@@ -199,7 +199,9 @@ def _entries(xp: Any, matrix: Any) -> tuple[list[Any], Any]:
         matrix = matrix * _power_of_two(xp, largest)[..., None, None]
         entries = [e for row in unstack(matrix, axis=-2) for e in unstack(row, axis=-1)]
     else:
-        rows = xp.stack(list(xp.moveaxis(xp.reshape(matrix, (*matrix.shape[:-2], 9)), -1, 0)), axis=0)
+        # Indexing, not moveaxis: torch.func.vmap has no batching rule for the moveaxis alias.
+        flat = xp.reshape(matrix, (*matrix.shape[:-2], 9))
+        rows = xp.stack([flat[..., i] for i in range(9)], axis=0)
         largest = xp.amax(xp.abs(rows), axis=0)
         entries = list(rows * _power_of_two(xp, largest))
     # max |entry| is infinite or NaN exactly where an entry is; isfinite raises no warning in numpy.
