@@ -14,6 +14,7 @@ import torch
 from cases import (
     CASES,
     CASES_BY_NAME,
+    EDGE_CASES,
     Case,
     Op,
     edge_cases,
@@ -29,6 +30,7 @@ from conftest import BACKENDS, Backend
 from jax.test_util import check_grads
 
 Fn = Callable[..., Any]
+JAX_GROUPED_BY_OP = True  # see conftest.py
 
 
 def batch_shape(case: Case) -> tuple[int, ...]:
@@ -94,11 +96,40 @@ def fd_jacobians(backend: Backend, fn: Fn, xs: list[np.ndarray], batch: Batch) -
     return out
 
 
+_JITTED: dict[str, Fn] = {}
+
+
+def jitted(op: Op) -> Fn:
+    """The op's gradient function under ``jax.jit``, one per op for the whole session: jax caches a
+    compiled program, and the programs of its ``jvp``, ``vjp`` and their second orders, per function
+    and input shape, so every test and case that calls it at a shape seen before compiles nothing
+    (the check_grads of one op compiled in 15 s, and then ran in 0.07 s). conftest.py keeps an op's
+    jax gradient tests on one xdist worker, so that they share it."""
+    if op.id not in _JITTED:
+        _JITTED[op.id] = jax.jit(op.gradient_function(BACKENDS["jax"].module))
+    return _JITTED[op.id]
+
+
+def tiled(xs: list[np.ndarray], batch: Batch, n: int) -> tuple[list[np.ndarray], Batch]:
+    """The inputs with their batch flattened to one dimension of ``n`` elements, the case's elements
+    repeated in order (an empty case stays empty), so that cases of different batch shapes are one
+    shape to the compiler. Every element is still differentiated at its own point; batch shapes
+    themselves are tested by the torch rows here and by tests/test_transforms.py on jax."""
+    size = int(np.prod(batch))
+    if size == 0:
+        return xs, batch
+    return [np.resize(x.reshape(size, *x.shape[len(batch) :]), (n, *x.shape[len(batch) :])) for x in xs], (n,)
+
+
 def grad_setup(op: Op, backend: Backend, case: Case) -> tuple[Fn, list[np.ndarray], tuple[int, ...]]:
-    xs = list(op.gradient_inputs(case.quaternions("float64")))
-    fn = op.gradient_function(backend.module)
-    # jax: compiled, as users run it, and so that hundreds of finite-difference calls stay quick.
-    return (jax.jit(fn) if backend.name == "jax" else fn), xs, batch_shape(case)
+    """The op's gradient function on ``backend`` and the case's float64 inputs. jax: compiled, as users
+    run it, and so that hundreds of finite-difference calls stay quick; the batch tiled to 64, 128, ...
+    elements (the next power of two), so that the op compiles for three shapes, not thirteen."""
+    xs, batch = list(op.gradient_inputs(case.quaternions("float64"))), batch_shape(case)
+    if backend.name == "torch":
+        return op.gradient_function(backend.module), xs, batch
+    xs, batch = tiled(xs, batch, max(64, 1 << (int(np.prod(batch)) - 1).bit_length()))
+    return jitted(op), xs, batch
 
 
 @gradients
@@ -115,11 +146,13 @@ def test_gradient_matches_finite_differences(op: Op, backend: Backend, dtype: st
         assert np.all(np.abs(j_ad - j_fd) <= tol), float(np.max(np.abs(j_ad - j_fd) / tol))
 
 
-def small(x: np.ndarray, batch: Batch) -> np.ndarray:
+def small(op: Op, case: Case) -> list[np.ndarray]:
     """At most 24 elements of a case (every 4th of a larger one), batch flattened to one dimension,
-    to keep the dense numerical Jacobians of gradcheck small. Every input of an op gets the same."""
-    flat = x.reshape(-1, *x.shape[len(batch) :])
-    return flat if len(flat) <= 24 else flat[::4][:24]
+    to keep the numerical Jacobians of gradcheck and check_grads small. Every input of an op gets the
+    same."""
+    xs, batch = op.gradient_inputs(case.quaternions("float64")), batch_shape(case)
+    flat = [x.reshape(-1, *x.shape[len(batch) :]) for x in xs]
+    return [x if len(x) <= 24 else x[::4][:24] for x in flat]
 
 
 @smooth
@@ -127,19 +160,41 @@ def small(x: np.ndarray, batch: Batch) -> np.ndarray:
 @torch_only
 @gradients
 def test_torch_gradcheck_and_gradgradcheck(op: Op, backend: Backend, dtype: str, case: Case) -> None:
-    fn, xs, batch = grad_setup(op, backend, case)
-    ts = tuple(torch.tensor(small(x, batch), requires_grad=True) for x in xs)
-    assert torch.autograd.gradcheck(fn, ts, eps=1e-6, atol=1e-6, rtol=1e-5)
-    assert torch.autograd.gradgradcheck(fn, ts, eps=1e-6, atol=1e-5, rtol=1e-4)
+    fn = op.gradient_function(backend.module)
+    ts = tuple(torch.tensor(x, requires_grad=True) for x in small(op, case))
+    # Fast mode: u^T J v against its central difference for random u and v, where the slow mode builds
+    # the whole numerical Jacobian (216 columns for 24 matrices), and its transpose for the second order;
+    # a wrong entry moves u^T J v unless the error is orthogonal to a random vector (probability 0).
+    # The whole Jacobian of every element is compared with finite differences above.
+    assert torch.autograd.gradcheck(fn, ts, eps=1e-6, atol=1e-6, rtol=1e-5, fast_mode=True)
+    assert torch.autograd.gradgradcheck(fn, ts, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=True)
 
 
-@smooth
-@edge_cases
 @jax_only
 @gradients
-def test_jax_check_grads(op: Op, backend: Backend, dtype: str, case: Case) -> None:
-    fn, xs, batch = grad_setup(op, backend, case)
-    check_grads(fn, tuple(jnp.asarray(small(x, batch)) for x in xs), order=2, modes=("fwd", "rev"), eps=1e-6)
+def test_jax_check_grads(op: Op, backend: Backend, dtype: str) -> None:
+    """``check_grads`` to second order, forward and reverse, at every edge case where the op is smooth,
+    all in one batch (each element is checked on its own: the ops are row by row, and check_grads
+    compares the directional derivatives element by element). Eager, not compiled: jax dispatches
+    eager operations at a cost per call, not per element, so one batch costs what one case did, while
+    compiling the jvp, vjp and second-order programs took 15-60 s per op and shape. A failure is
+    traced back to the case it is in."""
+    cases = [c for c in CASES if c.name in EDGE_CASES and op.applies(c) and op.smooth_at(c)]
+    parts = [small(op, case) for case in cases]
+    fn = op.gradient_function(backend.module)
+
+    def check(xs: list[np.ndarray]) -> None:
+        check_grads(fn, tuple(jnp.asarray(x) for x in xs), order=2, modes=("fwd", "rev"), eps=1e-6)
+
+    try:
+        check([np.concatenate(p) for p in zip(*parts, strict=True)])
+    except AssertionError:
+        for case, xs in zip(cases, parts, strict=True):
+            try:
+                check(xs)
+            except AssertionError as error:
+                raise AssertionError(f"case {case.name}: {error}") from None
+        raise
 
 
 @smooth

@@ -11,16 +11,27 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import torch
-from cases import Case, Op, gradients, jax_only, only, torch_only
+from cases import CASES_BY_NAME, Op, gradients, jax_only, torch_only
 from conftest import Backend
 
-# Two cases: a generic batch and the exact half-turns (the branchiest inputs for every op).
-transform_cases = only(case=lambda c: c.name in ("random", "half_turns"))
+# Two cases, a generic batch and the exact half-turns (the branchiest inputs for every op), as one
+# batch: each transform compiles once per op (compilation, not the batch, is what these tests cost).
+TRANSFORM_CASES = ("random", "half_turns")
 
 
-def setup(op: Op, case: Case) -> tuple[list[np.ndarray], np.ndarray]:
-    xs = list(op.gradient_inputs(case.quaternions("float64")))
-    return xs, np.random.default_rng(1).normal(size=(len(xs[0]),))
+def setup(op: Op) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+    """The cases' inputs, flattened and concatenated; which rows are at a case where the op is smooth;
+    a weight per row."""
+    parts, smooth = [], []
+    for case in (CASES_BY_NAME[name] for name in TRANSFORM_CASES):
+        if op.applies(case):
+            q = case.quaternions("float64")
+            batch = q.shape[:-1]
+            n = int(np.prod(batch))
+            parts.append([x.reshape(n, *x.shape[len(batch) :]) for x in op.gradient_inputs(q)])
+            smooth.append(np.full(n, op.smooth_at(case)))
+    xs = [np.concatenate(p) for p in zip(*parts, strict=True)]
+    return xs, np.concatenate(smooth), np.random.default_rng(1).normal(size=(len(xs[0]),))
 
 
 def scalar_loss(fn: Callable[..., Any], weights: Any) -> Callable[..., Any]:
@@ -38,25 +49,21 @@ def close(a: Any, b: Any) -> None:
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-12)
 
 
-def close_derivatives(a: Any, b: Any, op: Op, case: Case) -> None:
-    """Derivatives under a transform equal eager ones where the op is differentiable. At a kink (a
-    distance between antipodal rotations, |w| at w = 0) the derivative follows the sign or the
-    direction of a rounding error, which a compiler's reordering of the same arithmetic may change:
-    there, both must only be finite."""
-    if op.smooth_at(case):
-        close(a, b)
-    else:
-        assert np.all(np.isfinite(np.asarray(a))) and np.all(np.isfinite(np.asarray(b)))
+def close_derivatives(a: Any, b: Any, smooth: np.ndarray) -> None:
+    """Derivatives under a transform equal eager ones on the rows where the op is differentiable
+    (``smooth``). At a kink (a distance between antipodal rotations, |w| at w = 0) the derivative
+    follows the sign or the direction of a rounding error, which a compiler's reordering of the same
+    arithmetic may change: there, both must only be finite."""
+    a, b = np.asarray(a), np.asarray(b)
+    close(a[smooth], b[smooth])
+    assert np.all(np.isfinite(a)) and np.all(np.isfinite(b))
 
 
-@transform_cases
 @torch_only
 @gradients
-def test_torch_compile_fullgraph_forward_and_backward(
-    op: Op, backend: Backend, dtype: str, case: Case
-) -> None:
+def test_torch_compile_fullgraph_forward_and_backward(op: Op, backend: Backend, dtype: str) -> None:
     fn = op.gradient_function(backend.module)
-    xs, _ = setup(op, case)
+    xs, smooth, _ = setup(op)
     # Every op's test function is the same lambda code object (Op.gradient_function), and dynamo
     # caches compiled frames per code object: without a reset, the ninth op compiled in one worker
     # hits dynamo's recompile limit, which fullgraph=True turns into an error.
@@ -70,18 +77,17 @@ def test_torch_compile_fullgraph_forward_and_backward(
     for a, b in zip(
         torch.autograd.grad(comp, comp_in, cot), torch.autograd.grad(eager, eager_in, cot), strict=True
     ):
-        close_derivatives(a, b, op, case)
+        close_derivatives(a, b, smooth)
 
 
-@only(case=lambda c: c.name == "random")
 @torch_only
 @gradients
-def test_torch_compile_dynamic_shapes(op: Op, backend: Backend, dtype: str, case: Case) -> None:
+def test_torch_compile_dynamic_shapes(op: Op, backend: Backend, dtype: str) -> None:
     """Under ``torch.compile(dynamic=True)`` every size is symbolic, the trailing (3, 3) or (4,) too:
     the argument checks must still pass (they once compared sizes in a way Dynamo could not resolve,
     and raised the shape error for a valid input). Two batch sizes through one compiled graph."""
     fn = op.gradient_function(backend.module)
-    xs, _ = setup(op, case)
+    xs, _, _ = setup(op)
     torch._dynamo.reset()
     compiled = torch.compile(fn, fullgraph=True, dynamic=True)
     for rows in (len(xs[0]), len(xs[0]) - 1):
@@ -89,12 +95,11 @@ def test_torch_compile_dynamic_shapes(op: Op, backend: Backend, dtype: str, case
         close(compiled(*ts), fn(*ts))
 
 
-@transform_cases
 @torch_only
 @gradients
-def test_torch_func_vmap_grad_jacrev(op: Op, backend: Backend, dtype: str, case: Case) -> None:
+def test_torch_func_vmap_grad_jacrev(op: Op, backend: Backend, dtype: str) -> None:
     fn = op.gradient_function(backend.module)
-    xs, w = setup(op, case)
+    xs, smooth, w = setup(op)
     ts = [torch.tensor(x) for x in xs]
     close(torch.func.vmap(fn)(*ts), fn(*ts))
     # grad of a weighted scalar equals autograd's
@@ -103,20 +108,19 @@ def test_torch_func_vmap_grad_jacrev(op: Op, backend: Backend, dtype: str, case:
     expected = torch.autograd.grad(loss(*leaves), leaves)
     got = torch.func.grad(loss, argnums=tuple(range(len(ts))))(*ts)
     for a, b in zip(got, expected, strict=True):
-        close_derivatives(a, b, op, case)
+        close_derivatives(a, b, smooth)
     # per-element Jacobians: jacrev under vmap equals jacrev of one element
     jac = torch.func.vmap(torch.func.jacrev(fn))(*ts)
     one = torch.func.jacrev(fn)(*(t[0] for t in ts))
-    close_derivatives(jac[0], one, op, case)
+    close_derivatives(jac[:1], one[None], smooth[:1])
     assert torch.all(torch.isfinite(jac))
 
 
-@transform_cases
 @jax_only
 @gradients
-def test_jax_jit_vmap_grad_jacfwd(op: Op, backend: Backend, dtype: str, case: Case) -> None:
+def test_jax_jit_vmap_grad_jacfwd(op: Op, backend: Backend, dtype: str) -> None:
     fn = op.gradient_function(backend.module)
-    xs, w = setup(op, case)
+    xs, smooth, w = setup(op)
     arrays = [jnp.asarray(x) for x in xs]
     eager = fn(*arrays)
     close(jax.jit(fn)(*arrays), eager)
@@ -126,9 +130,9 @@ def test_jax_jit_vmap_grad_jacfwd(op: Op, backend: Backend, dtype: str, case: Ca
     g = jax.grad(loss, argnums=argnums)(*arrays)
     g_jit = jax.jit(jax.grad(loss, argnums=argnums))(*arrays)
     for a, b in zip(g_jit, g, strict=True):
-        close_derivatives(a, b, op, case)
+        close_derivatives(a, b, smooth)
     # forward-mode per-element Jacobians equal reverse-mode ones
     fwd = jax.vmap(jax.jacfwd(fn))(*arrays)
     rev = jax.vmap(jax.jacrev(fn))(*arrays)
-    close_derivatives(fwd, rev, op, case)
+    close_derivatives(fwd, rev, smooth)
     assert bool(jnp.all(jnp.isfinite(fwd)))
