@@ -130,8 +130,9 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Where a test module sets ``JAX_GROUPED_BY_OP``, its jax tests of one op run on one xdist worker
-    (``--dist loadgroup``, in pyproject.toml), so that they share the op's compiled programs (see
-    ``jitted`` in test_grads.py) instead of compiling them on both workers."""
+    (``--dist loadgroup``, in pyproject.toml), with those of the other modules that set it, so that
+    they share what jax compiled for the op (the public functions' programs per shape and dtype,
+    ``jitted`` in test_grads.py) instead of compiling it on both workers."""
     for item in items:
         params = getattr(getattr(item, "callspec", None), "params", {})
         grouped = getattr(item.module, "JAX_GROUPED_BY_OP", False)  # type: ignore[attr-defined]
