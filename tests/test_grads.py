@@ -113,8 +113,8 @@ def jitted(op: Op) -> Fn:
 def tiled(xs: list[np.ndarray], batch: Batch, n: int) -> tuple[list[np.ndarray], Batch]:
     """The inputs with their batch flattened to one dimension of ``n`` elements, the case's elements
     repeated in order (an empty case stays empty), so that cases of different batch shapes are one
-    shape to the compiler. Every element is still differentiated at its own point; batch shapes
-    themselves are tested by the torch rows here and by tests/test_transforms.py on jax."""
+    shape to the compiler. Every element is still differentiated at its own point; the batch_* cases,
+    whose point is the batch shape, are not tiled (see grad_setup)."""
     size = int(np.prod(batch))
     if size == 0:
         return xs, batch
@@ -124,10 +124,13 @@ def tiled(xs: list[np.ndarray], batch: Batch, n: int) -> tuple[list[np.ndarray],
 def grad_setup(op: Op, backend: Backend, case: Case) -> tuple[Fn, list[np.ndarray], tuple[int, ...]]:
     """The op's gradient function on ``backend`` and the case's float64 inputs. jax: compiled, as users
     run it, and so that hundreds of finite-difference calls stay quick; the batch tiled to 64, 128, ...
-    elements (the next power of two), so that the op compiles for three shapes, not thirteen."""
+    elements (the next power of two), so that the op compiles for three shapes and the batch_* cases
+    own, not thirteen."""
     xs, batch = list(op.gradient_inputs(case.quaternions("float64"))), batch_shape(case)
     if backend.name == "torch":
         return op.gradient_function(backend.module), xs, batch
+    if case.name.startswith("batch_"):  # the batch shape is what these cases test: kept as it is
+        return jitted(op), xs, batch
     xs, batch = tiled(xs, batch, max(64, 1 << (int(np.prod(batch)) - 1).bit_length()))
     return jitted(op), xs, batch
 
