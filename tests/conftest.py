@@ -126,15 +126,3 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
         combos = [c for c in combos if c[i].applies(c[j]) and pair(c[i], c[j])]
     ids = ["-".join(fmt(v) for (_, _, fmt), v in zip(axes, combo, strict=True)) for combo in combos]
     metafunc.parametrize(argnames, combos, ids=ids, indirect=["backend"])
-
-
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Where a test module sets ``JAX_GROUPED_BY_OP``, its jax tests of one op run on one xdist worker
-    (``--dist loadgroup``, in pyproject.toml), with those of the other modules that set it, so that
-    they share what jax compiled for the op (the public functions' programs per shape and dtype,
-    ``jitted`` in test_grads.py) instead of compiling it on both workers."""
-    for item in items:
-        params = getattr(getattr(item, "callspec", None), "params", {})
-        grouped = getattr(item.module, "JAX_GROUPED_BY_OP", False)  # type: ignore[attr-defined]
-        if grouped and params.get("backend") == "jax" and "op" in params:
-            item.add_marker(pytest.mark.xdist_group(f"jax-{params['op'].id}"))

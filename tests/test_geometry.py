@@ -19,8 +19,6 @@ from cases import (
 from conftest import Backend
 from scipy.spatial.transform import Rotation
 
-JAX_GROUPED_BY_OP = True  # an op's jax tests on one xdist worker: see conftest.py
-
 SEQUENCES = [a + b + c for a in "xyz" for b in "xyz" for c in "xyz" if a != b and b != c]
 CONVENTIONS = SEQUENCES + [s.upper() for s in SEQUENCES]
 

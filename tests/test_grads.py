@@ -30,7 +30,6 @@ from conftest import BACKENDS, Backend
 from jax.test_util import check_grads
 
 Fn = Callable[..., Any]
-JAX_GROUPED_BY_OP = True  # see conftest.py
 
 
 def batch_shape(case: Case) -> tuple[int, ...]:
@@ -100,11 +99,9 @@ _JITTED: dict[str, Fn] = {}
 
 
 def jitted(op: Op) -> Fn:
-    """The op's gradient function under ``jax.jit``, one per op for the whole session: jax caches a
-    compiled program, and the programs of its ``jvp``, ``vjp`` and their second orders, per function
-    and input shape, so every test and case that calls it at a shape seen before compiles nothing
-    (the check_grads of one op compiled in 15 s, and then ran in 0.07 s). conftest.py keeps an op's
-    jax gradient tests on one xdist worker, so that they share it."""
+    """The op's gradient function under ``jax.jit``, one per op for the session: jax caches a compiled
+    program (and those of its ``vjp``) per function and input shape, so every later case at a shape
+    seen before compiles nothing."""
     if op.id not in _JITTED:
         _JITTED[op.id] = jax.jit(op.gradient_function(BACKENDS["jax"].module))
     return _JITTED[op.id]
@@ -112,12 +109,10 @@ def jitted(op: Op) -> Fn:
 
 def tiled(xs: list[np.ndarray], batch: Batch, n: int) -> tuple[list[np.ndarray], Batch]:
     """The inputs with their batch flattened to one dimension of ``n`` elements, the case's elements
-    repeated in order (an empty case stays empty), so that cases of different batch shapes are one
-    shape to the compiler. Every element is still differentiated at its own point; the batch_* cases,
-    whose point is the batch shape, are not tiled (see grad_setup)."""
+    repeated in order, so that cases of different batch shapes are one shape to the compiler. Every
+    element is still differentiated at its own point; the batch_* cases, whose point is the batch
+    shape (the empty one included), are not tiled (see grad_setup)."""
     size = int(np.prod(batch))
-    if size == 0:
-        return xs, batch
     return [np.resize(x.reshape(size, *x.shape[len(batch) :]), (n, *x.shape[len(batch) :])) for x in xs], (n,)
 
 

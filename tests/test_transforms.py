@@ -14,8 +14,6 @@ import torch
 from cases import CASES_BY_NAME, Op, gradients, jax_only, torch_only
 from conftest import Backend
 
-JAX_GROUPED_BY_OP = True  # an op's jax tests on one xdist worker: see conftest.py
-
 # Two cases, a generic batch and the exact half-turns (the branchiest inputs for every op), as one
 # batch: each transform compiles once per op (compilation, not the batch, is what these tests cost).
 TRANSFORM_CASES = ("random", "half_turns")

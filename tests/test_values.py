@@ -20,8 +20,6 @@ from cases import (
 )
 from conftest import Backend
 
-JAX_GROUPED_BY_OP = True  # an op's jax tests on one xdist worker: see conftest.py
-
 WXYZ_TO_XYZW = [1, 2, 3, 0]
 XYZW_TO_WXYZ = [3, 0, 1, 2]
 
