@@ -11,7 +11,9 @@ import importlib
 import importlib.util
 import itertools
 import os
+import shutil
 import sys
+import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -47,6 +49,26 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 jax.config.update("jax_numpy_rank_promotion", "raise")
 torch.set_default_dtype(torch.float32)
 
+# One persistent compilation cache for the session, shared by the xdist workers: jax compiles each
+# primitive it runs eagerly once per shape and dtype and process, and the workers run the same
+# primitives on the same shapes (a third of the jax tests' time was compiling what the other worker
+# had compiled). The directory is new for each session, so nothing carries over between runs. The
+# size is left unbounded: a bound turns on jax's file lock and a scan of the directory on every write,
+# which made the workers wait on each other. An entry read while the other worker is still writing it
+# is one jax cannot decompress: it warns and compiles (the warning is let through in pyproject.toml).
+_JAX_CACHE_OWNER = "PYTEST_XDIST_WORKER" not in os.environ and "DIFFQUAT_TEST_JAX_CACHE" not in os.environ
+if _JAX_CACHE_OWNER:
+    os.environ["DIFFQUAT_TEST_JAX_CACHE"] = tempfile.mkdtemp(prefix="diffquat-jax-cache-")
+jax.config.update("jax_compilation_cache_dir", os.environ["DIFFQUAT_TEST_JAX_CACHE"])
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    if _JAX_CACHE_OWNER:
+        shutil.rmtree(os.environ.pop("DIFFQUAT_TEST_JAX_CACHE"), ignore_errors=True)
+
+
 import jax.numpy as jnp  # noqa: E402
 import ml_dtypes  # noqa: E402
 
@@ -67,6 +89,11 @@ class Backend:
 
     def array(self, x: np.ndarray, dtype: str) -> Any:
         return self.asarray(np.asarray(x, dtype=np.float64), self.dtypes[dtype])
+
+
+def _host_cast(x: np.ndarray, dtype: Any) -> np.ndarray:
+    with np.errstate(over="ignore"):  # beyond the dtype's range: inf, as every backend's cast gives
+        return x.astype(np.dtype(dtype))
 
 
 BACKENDS = {
@@ -92,8 +119,10 @@ BACKENDS = {
     "jax": Backend(
         "jax",
         {"float64": jnp.float64, "float32": jnp.float32, "float16": jnp.float16, "bfloat16": jnp.bfloat16},
-        lambda x, dt: jnp.asarray(x, dtype=dt),
-        lambda x: np.asarray(x.astype(jnp.float64)),
+        # Cast on the host: a jax cast is a compiled program per shape and dtype, which made up a
+        # third of the compilations of the value tests (numpy's casts round the same way).
+        lambda x, dt: jax.device_put(_host_cast(x, dt)),
+        lambda x: np.asarray(x).astype(np.float64),
         differentiable=True,
     ),
 }

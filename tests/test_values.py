@@ -18,22 +18,63 @@ from cases import (
     oracle_quaternion_to_matrix,
     uniform_quaternions,
 )
-from conftest import Backend
+from conftest import BACKENDS, Backend
 
 WXYZ_TO_XYZW = [1, 2, 3, 0]
 XYZW_TO_WXYZ = [3, 0, 1, 2]
 
 
-def run(op: Op, backend: Backend, dtype: str, case: Case) -> tuple[list[np.ndarray], np.ndarray]:
-    """Run ``op`` on the case; return the float64 values the backend received and its output."""
-    inputs = [backend.array(x, dtype) for x in op.inputs(case.quaternions(dtype))]
+def call(
+    op: Op, backend: Backend, dtype: str, xs: list[np.ndarray], scalar_last: bool = False
+) -> tuple[list[np.ndarray], np.ndarray]:
+    """Run ``op`` on float64 inputs cast to ``dtype`` (with ``scalar_last``: its quaternion arguments
+    reordered, and ``scalar_first=False``); return the float64 values the backend received and its
+    output."""
+    if scalar_last:
+        xs = [op.to_scalar_last(x) if i in op.quaternion_args else x for i, x in enumerate(xs)]
+    inputs = [backend.array(x, dtype) for x in xs]
     received = [backend.to_numpy(x) for x in inputs]
-    out = op(backend.module, *inputs)
+    out = op(backend.module, *inputs, **({"scalar_first": False} if scalar_last else {}))
     assert out.dtype == inputs[0].dtype, "dtype not preserved"
     assert type(out) is type(inputs[0]), "array type not preserved"
     for x, before in zip(inputs, received, strict=True):
         np.testing.assert_array_equal(backend.to_numpy(x), before, err_msg="the op wrote into its input")
     return received, backend.to_numpy(out)
+
+
+_JAX_BATCHES: dict[tuple[str, str, bool], dict[str, tuple[list[np.ndarray], np.ndarray]]] = {}
+
+
+def jax_batch(op: Op, dtype: str, scalar_last: bool) -> dict[str, tuple[list[np.ndarray], np.ndarray]]:
+    """Per case, what ``call`` returns, from one jax call on every case but the batch_* ones,
+    flattened and concatenated. Eager jax compiles each primitive it runs for every new shape and
+    dtype: thirteen case shapes made the jax value tests a compiler benchmark. Rows are independent
+    (tests below check that a NaN row leaves the others alone), so each row is the op's value at that
+    row; the batch_* cases, which test the batch shape itself, are called at their own shapes."""
+    key = (op.id, dtype, scalar_last)
+    if key not in _JAX_BATCHES:
+        cases = [c for c in CASES if op.applies(c) and not c.name.startswith("batch_")]
+        inputs = {c.name: op.inputs(c.quaternions(dtype)) for c in cases}
+        batches = {c.name: c.quaternions(dtype).shape[:-1] for c in cases}
+        flat = [[x.reshape(-1, *x.shape[len(batches[name]) :]) for x in xs] for name, xs in inputs.items()]
+        xs = [np.concatenate(p) for p in zip(*flat, strict=True)]
+        received, out = call(op, BACKENDS["jax"], dtype, xs, scalar_last)
+        _JAX_BATCHES[key], start = {}, 0
+        for name, batch in batches.items():
+            rows = slice(start, start + int(np.prod(batch)))
+            start = rows.stop
+            mine = [r[rows].reshape(x.shape) for r, x in zip(received, inputs[name], strict=True)]
+            _JAX_BATCHES[key][name] = mine, out[rows].reshape(*batch, *out.shape[1:])
+    return _JAX_BATCHES[key]
+
+
+def run(
+    op: Op, backend: Backend, dtype: str, case: Case, scalar_last: bool = False
+) -> tuple[list[np.ndarray], np.ndarray]:
+    """Run ``op`` on the case; return the float64 values the backend received and its output."""
+    if backend.name == "jax" and not case.name.startswith("batch_"):
+        return jax_batch(op, dtype, scalar_last)[case.name]
+    return call(op, backend, dtype, list(op.inputs(case.quaternions(dtype))), scalar_last)
 
 
 def tol(op: Op, dtype: str) -> float:
@@ -86,10 +127,8 @@ def test_output_quaternion_is_canonical_and_unit(op: Op, backend: Backend, dtype
 
 @only(op=lambda op: op.scalar_first)
 def test_scalar_last_is_the_reordered_scalar_first(op: Op, backend: Backend, dtype: str, case: Case) -> None:
-    inputs = op.inputs(case.quaternions(dtype))
-    last = [op.to_scalar_last(x) if i in op.quaternion_args else x for i, x in enumerate(inputs)]
-    first = backend.to_numpy(op(backend.module, *(backend.array(x, dtype) for x in inputs)))
-    out = backend.to_numpy(op(backend.module, *(backend.array(x, dtype) for x in last), scalar_first=False))
+    _, first = run(op, backend, dtype, case)
+    _, out = run(op, backend, dtype, case, scalar_last=True)
     if op.output == "quaternion":
         out = out[..., XYZW_TO_WXYZ]
     np.testing.assert_array_equal(out, first)
