@@ -155,3 +155,46 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
         combos = [c for c in combos if c[i].applies(c[j]) and pair(c[i], c[j])]
     ids = ["-".join(fmt(v) for (_, _, fmt), v in zip(axes, combo, strict=True)) for combo in combos]
     metafunc.parametrize(argnames, combos, ids=ids, indirect=["backend"])
+
+
+_CASE_ROWS: dict[tuple[str, str, str], dict[str, list[np.ndarray]]] = {}
+
+
+def case_rows(
+    backend: Backend,
+    dtype: str,
+    case: Any,
+    key: str,
+    inputs: Callable[[Any], list[np.ndarray]],
+    fn: Callable[..., Any],
+) -> list[np.ndarray]:
+    """``fn`` on the backend arrays of ``inputs(case)`` (float64 arrays of the case's batch shape, cast
+    to ``dtype``): its outputs (an array or a tuple of arrays of the same batch shape) as float64.
+
+    On jax, every case but the batch_* ones is evaluated in one call, flattened and concatenated, and
+    cached per ``key`` (one per test) and dtype: eager jax compiles each primitive for every new shape,
+    and thirteen case shapes made the per-case tests a compiler benchmark. Rows are independent (a NaN
+    row leaves the others alone: tests/test_values.py), so each row is the value at that row; the
+    batch_* cases, whose point is the batch shape, are evaluated at their own shapes."""
+
+    def call(xs: list[np.ndarray]) -> list[np.ndarray]:
+        out = fn(*(backend.array(x, dtype) for x in xs))
+        return [backend.to_numpy(o) for o in (out if isinstance(out, tuple) else (out,))]
+
+    if backend.name != "jax" or case.name.startswith("batch_"):
+        return call(inputs(case))
+    cache = (key, backend.name, dtype)
+    if cache not in _CASE_ROWS:
+        cases = [c for c in CASES if not c.name.startswith("batch_")]
+        batches = [c.quaternions(dtype).shape[:-1] for c in cases]
+        flat = [
+            [x.reshape(-1, *x.shape[len(batch) :]) for x in inputs(c)]
+            for c, batch in zip(cases, batches, strict=True)
+        ]
+        outs = call([np.concatenate(p) for p in zip(*flat, strict=True)])
+        _CASE_ROWS[cache], start = {}, 0
+        for c, batch in zip(cases, batches, strict=True):
+            rows = slice(start, start + int(np.prod(batch)))
+            start = rows.stop
+            _CASE_ROWS[cache][c.name] = [o[rows].reshape(*batch, *o.shape[1:]) for o in outs]
+    return _CASE_ROWS[cache][case.name]

@@ -16,7 +16,7 @@ from cases import (
     oracle_quaternion_to_matrix,
     uniform_quaternions,
 )
-from conftest import Backend
+from conftest import Backend, case_rows
 from scipy.spatial.transform import Rotation
 
 SEQUENCES = [a + b + c for a in "xyz" for b in "xyz" for c in "xyz" if a != b and b != c]
@@ -81,12 +81,25 @@ def test_bad_euler_convention_raises_naming_the_function(name: str) -> None:
 @only(case=lambda c: c.name != "zero")  # zero times p is zero, the identity: not R(p)
 def test_product_of_quaternions_is_product_of_matrices(backend: Backend, dtype: str, case: Case) -> None:
     dq = backend.module
-    q = case.quaternions(dtype)
-    p = uniform_quaternions(int(np.prod(q.shape[:-1])) or 1, seed=30)[: int(np.prod(q.shape[:-1]))]
-    p = p.reshape(q.shape)
-    pb, qb = backend.array(p, dtype), backend.array(q, dtype)
-    lhs = backend.to_numpy(dq.quaternion_to_matrix(dq.quaternion_multiply(pb, qb)))
-    rhs = backend.to_numpy(dq.quaternion_to_matrix(pb)) @ backend.to_numpy(dq.quaternion_to_matrix(qb))
+
+    def inputs(c: Case) -> list[np.ndarray]:
+        q = c.quaternions(dtype)
+        p = uniform_quaternions(int(np.prod(q.shape[:-1])) or 1, seed=30)[: int(np.prod(q.shape[:-1]))]
+        return [p.reshape(q.shape), q]
+
+    lhs, rp, rq = case_rows(
+        backend,
+        dtype,
+        case,
+        "product",
+        inputs,
+        lambda p, q: (
+            dq.quaternion_to_matrix(dq.quaternion_multiply(p, q)),
+            dq.quaternion_to_matrix(p),
+            dq.quaternion_to_matrix(q),
+        ),
+    )
+    rhs = rp @ rq
     tol = {"float64": 1e-12, "float32": 4e-6, "float16": 8e-3, "bfloat16": 6e-2}[dtype]
     np.testing.assert_allclose(lhs, rhs, atol=tol)
 

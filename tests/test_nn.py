@@ -237,11 +237,16 @@ def test_jax_heads_train_inside_flax_and_equinox_models(framework: str, represen
     x = jnp.asarray(rng.normal(size=(32, 5)))
     target = jnp.asarray(Rotation.random(32, random_state=5).as_matrix())
 
-    head, features = head_params(params, x)
-    np.testing.assert_allclose(
-        apply(params, x), jnn.rotation_head(head, features, representation), atol=1e-12
-    )
+    # Compiled, as such models run: eagerly, every flax, equinox and diffquat operation compiled on
+    # its own first, which was most of this test's time.
+    @jax.jit
+    def model_and_head(params: Any) -> tuple[Any, Any]:
+        head, features = head_params(params, x)
+        return apply(params, x), jnn.rotation_head(head, features, representation)
 
+    np.testing.assert_allclose(*model_and_head(params), atol=1e-12)
+
+    @jax.jit
     def loss(params: Any) -> Any:
         return dq.matrix_geodesic_distance(apply(params, x), target).mean()
 

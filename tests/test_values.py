@@ -18,7 +18,7 @@ from cases import (
     oracle_quaternion_to_matrix,
     uniform_quaternions,
 )
-from conftest import BACKENDS, Backend
+from conftest import BACKENDS, Backend, case_rows
 
 WXYZ_TO_XYZW = [1, 2, 3, 0]
 XYZW_TO_WXYZ = [3, 0, 1, 2]
@@ -137,26 +137,42 @@ def test_scalar_last_is_the_reordered_scalar_first(op: Op, backend: Backend, dty
 def test_round_trip_matrix_quaternion_matrix(backend: Backend, dtype: str, case: Case) -> None:
     """R -> q -> R reproduces R (the accuracy target of the core issue, exact half-turns included)."""
     dq = backend.module
-    matrix = backend.array(oracle_quaternion_to_matrix(case.quaternions(dtype)), dtype)
-    back = dq.quaternion_to_matrix(dq.matrix_to_quaternion(matrix))
-    assert max_error(backend.to_numpy(back), backend.to_numpy(matrix)) <= ROUND_TRIP_TOL[dtype]
+    matrix, back = case_rows(
+        backend,
+        dtype,
+        case,
+        "round trip R q R",
+        lambda c: [oracle_quaternion_to_matrix(c.quaternions(dtype))],
+        lambda m: (m, dq.quaternion_to_matrix(dq.matrix_to_quaternion(m))),
+    )
+    assert max_error(back, matrix) <= ROUND_TRIP_TOL[dtype]
 
 
 def test_round_trip_quaternion_matrix_quaternion(backend: Backend, dtype: str, case: Case) -> None:
     """q -> R -> q gives back q/|q| up to the canonical sign (the zero quaternion gives the identity)."""
     dq = backend.module
-    q = backend.array(case.quaternions(dtype), dtype)
-    back = backend.to_numpy(dq.matrix_to_quaternion(dq.quaternion_to_matrix(q)))
-    expected = oracle_normalize(backend.to_numpy(q))
-    assert max_error(back, expected, up_to_sign=True) <= 2 * VALUE_TOL[dtype]
+    q, back = case_rows(
+        backend,
+        dtype,
+        case,
+        "round trip q R q",
+        lambda c: [c.quaternions(dtype)],
+        lambda q: (q, dq.matrix_to_quaternion(dq.quaternion_to_matrix(q))),
+    )
+    assert max_error(back, oracle_normalize(q), up_to_sign=True) <= 2 * VALUE_TOL[dtype]
 
 
 def test_matrix_equals_the_quaternion_sandwich(backend: Backend, dtype: str, case: Case) -> None:
     """R(q) v == q v q* for unit q: the matrix is the active rotation that q stands for."""
-    q = oracle_normalize(case.quaternions(dtype))
-    q_in = backend.to_numpy(backend.array(q, dtype))
-    v = np.random.default_rng(0).normal(size=(*q.shape[:-1], 3))
-    matrix = backend.to_numpy(backend.module.quaternion_to_matrix(backend.array(q_in, dtype)))
+    q_in, matrix = case_rows(
+        backend,
+        dtype,
+        case,
+        "sandwich",
+        lambda c: [oracle_normalize(c.quaternions(dtype))],
+        lambda q: (q, backend.module.quaternion_to_matrix(q)),
+    )
+    v = np.random.default_rng(0).normal(size=(*q_in.shape[:-1], 3))
     rotated = (matrix @ v[..., None])[..., 0]
     pure = np.concatenate([np.zeros((*v.shape[:-1], 1)), v], axis=-1)
     conj = q_in * np.array([1.0, -1.0, -1.0, -1.0])
@@ -166,8 +182,15 @@ def test_matrix_equals_the_quaternion_sandwich(backend: Backend, dtype: str, cas
 
 def test_matches_the_kuipers_formula(backend: Backend, dtype: str, case: Case) -> None:
     """Kuipers, Quaternions and Rotation Sequences, section 5.14, on unit quaternions."""
-    q = backend.to_numpy(backend.array(oracle_normalize(case.quaternions(dtype)), dtype))
-    q = oracle_normalize(q)  # unit in float64, as the formula assumes
+    q_in, out = case_rows(
+        backend,
+        dtype,
+        case,
+        "sandwich",  # the same evaluation as the test above
+        lambda c: [oracle_normalize(c.quaternions(dtype))],
+        lambda q: (q, backend.module.quaternion_to_matrix(q)),
+    )
+    q = oracle_normalize(q_in)  # unit in float64, as the formula assumes
     q0, q1, q2, q3 = np.moveaxis(q, -1, 0)
     kuipers = np.stack(
         [
@@ -177,7 +200,6 @@ def test_matches_the_kuipers_formula(backend: Backend, dtype: str, case: Case) -
         ],
         -2,
     )
-    out = backend.to_numpy(backend.module.quaternion_to_matrix(backend.array(q, dtype)))
     assert max_error(out, kuipers) <= VALUE_TOL[dtype]
 
 
