@@ -162,16 +162,21 @@ def test_round_trip_quaternion_matrix_quaternion(backend: Backend, dtype: str, c
     assert max_error(back, oracle_normalize(q), up_to_sign=True) <= 2 * VALUE_TOL[dtype]
 
 
-def test_matrix_equals_the_quaternion_sandwich(backend: Backend, dtype: str, case: Case) -> None:
-    """R(q) v == q v q* for unit q: the matrix is the active rotation that q stands for."""
-    q_in, matrix = case_rows(
+def unit_quaternion_matrices(backend: Backend, dtype: str, case: Case) -> list[np.ndarray]:
+    """The case's quaternions normalised (as the backend received them, float64) and their matrices."""
+    return case_rows(
         backend,
         dtype,
         case,
-        "sandwich",
+        "unit quaternion matrices",
         lambda c: [oracle_normalize(c.quaternions(dtype))],
         lambda q: (q, backend.module.quaternion_to_matrix(q)),
     )
+
+
+def test_matrix_equals_the_quaternion_sandwich(backend: Backend, dtype: str, case: Case) -> None:
+    """R(q) v == q v q* for unit q: the matrix is the active rotation that q stands for."""
+    q_in, matrix = unit_quaternion_matrices(backend, dtype, case)
     v = np.random.default_rng(0).normal(size=(*q_in.shape[:-1], 3))
     rotated = (matrix @ v[..., None])[..., 0]
     pure = np.concatenate([np.zeros((*v.shape[:-1], 1)), v], axis=-1)
@@ -182,14 +187,7 @@ def test_matrix_equals_the_quaternion_sandwich(backend: Backend, dtype: str, cas
 
 def test_matches_the_kuipers_formula(backend: Backend, dtype: str, case: Case) -> None:
     """Kuipers, Quaternions and Rotation Sequences, section 5.14, on unit quaternions."""
-    q_in, out = case_rows(
-        backend,
-        dtype,
-        case,
-        "sandwich",  # the same evaluation as the test above
-        lambda c: [oracle_normalize(c.quaternions(dtype))],
-        lambda q: (q, backend.module.quaternion_to_matrix(q)),
-    )
+    q_in, out = unit_quaternion_matrices(backend, dtype, case)
     q = oracle_normalize(q_in)  # unit in float64, as the formula assumes
     q0, q1, q2, q3 = np.moveaxis(q, -1, 0)
     kuipers = np.stack(
