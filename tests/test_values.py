@@ -4,6 +4,7 @@ dtype and case in the table."""
 from __future__ import annotations
 
 import itertools
+from typing import Any
 
 import numpy as np
 from cases import (
@@ -18,63 +19,36 @@ from cases import (
     oracle_quaternion_to_matrix,
     uniform_quaternions,
 )
-from conftest import BACKENDS, Backend, case_rows
+from conftest import Backend, case_rows
 
 WXYZ_TO_XYZW = [1, 2, 3, 0]
 XYZW_TO_WXYZ = [3, 0, 1, 2]
 
 
-def call(
-    op: Op, backend: Backend, dtype: str, xs: list[np.ndarray], scalar_last: bool = False
-) -> tuple[list[np.ndarray], np.ndarray]:
-    """Run ``op`` on float64 inputs cast to ``dtype`` (with ``scalar_last``: its quaternion arguments
-    reordered, and ``scalar_first=False``); return the float64 values the backend received and its
-    output."""
-    if scalar_last:
-        xs = [op.to_scalar_last(x) if i in op.quaternion_args else x for i, x in enumerate(xs)]
-    inputs = [backend.array(x, dtype) for x in xs]
-    received = [backend.to_numpy(x) for x in inputs]
-    out = op(backend.module, *inputs, **({"scalar_first": False} if scalar_last else {}))
-    assert out.dtype == inputs[0].dtype, "dtype not preserved"
-    assert type(out) is type(inputs[0]), "array type not preserved"
-    for x, before in zip(inputs, received, strict=True):
-        np.testing.assert_array_equal(backend.to_numpy(x), before, err_msg="the op wrote into its input")
-    return received, backend.to_numpy(out)
-
-
-_JAX_BATCHES: dict[tuple[str, str, bool], dict[str, tuple[list[np.ndarray], np.ndarray]]] = {}
-
-
-def jax_batch(op: Op, dtype: str, scalar_last: bool) -> dict[str, tuple[list[np.ndarray], np.ndarray]]:
-    """Per case, what ``call`` returns, from one jax call on every case but the batch_* ones,
-    flattened and concatenated. Eager jax compiles each primitive it runs for every new shape and
-    dtype: thirteen case shapes made the jax value tests a compiler benchmark. Rows are independent
-    (tests below check that a NaN row leaves the others alone), so each row is the op's value at that
-    row; the batch_* cases, which test the batch shape itself, are called at their own shapes."""
-    key = (op.id, dtype, scalar_last)
-    if key not in _JAX_BATCHES:
-        cases = [c for c in CASES if op.applies(c) and not c.name.startswith("batch_")]
-        inputs = {c.name: op.inputs(c.quaternions(dtype)) for c in cases}
-        batches = {c.name: c.quaternions(dtype).shape[:-1] for c in cases}
-        flat = [[x.reshape(-1, *x.shape[len(batches[name]) :]) for x in xs] for name, xs in inputs.items()]
-        xs = [np.concatenate(p) for p in zip(*flat, strict=True)]
-        received, out = call(op, BACKENDS["jax"], dtype, xs, scalar_last)
-        _JAX_BATCHES[key], start = {}, 0
-        for name, batch in batches.items():
-            rows = slice(start, start + int(np.prod(batch)))
-            start = rows.stop
-            mine = [r[rows].reshape(x.shape) for r, x in zip(received, inputs[name], strict=True)]
-            _JAX_BATCHES[key][name] = mine, out[rows].reshape(*batch, *out.shape[1:])
-    return _JAX_BATCHES[key]
-
-
 def run(
     op: Op, backend: Backend, dtype: str, case: Case, scalar_last: bool = False
 ) -> tuple[list[np.ndarray], np.ndarray]:
-    """Run ``op`` on the case; return the float64 values the backend received and its output."""
-    if backend.name == "jax" and not case.name.startswith("batch_"):
-        return jax_batch(op, dtype, scalar_last)[case.name]
-    return call(op, backend, dtype, list(op.inputs(case.quaternions(dtype))), scalar_last)
+    """Run ``op`` on the case's inputs cast to ``dtype`` (with ``scalar_last``: its quaternion arguments
+    reordered, and ``scalar_first=False``); return the float64 values the backend received and its
+    output. On jax, from one call over the op's value cases (``conftest.case_rows``)."""
+
+    def inputs(c: Case) -> list[np.ndarray]:
+        xs = op.inputs(c.quaternions(dtype))
+        return [
+            op.to_scalar_last(x) if scalar_last and i in op.quaternion_args else x for i, x in enumerate(xs)
+        ]
+
+    def call(*xs: Any) -> tuple[Any, ...]:
+        received = [backend.to_numpy(x) for x in xs]
+        out = op(backend.module, *xs, **({"scalar_first": False} if scalar_last else {}))
+        assert out.dtype == xs[0].dtype, "dtype not preserved"
+        assert type(out) is type(xs[0]), "array type not preserved"
+        for x, before in zip(xs, received, strict=True):
+            np.testing.assert_array_equal(backend.to_numpy(x), before, err_msg="the op wrote into its input")
+        return (*xs, out)
+
+    *received, out = case_rows(backend, dtype, case, f"run {op.id} {scalar_last}", inputs, call)
+    return received, out
 
 
 def tol(op: Op, dtype: str) -> float:
