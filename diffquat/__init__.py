@@ -23,6 +23,10 @@ Conventions, identical on every backend:
   ``jit``): edge cases have one documented result instead.
 """
 
+from ._types import EulerConvention as EulerConvention
+from ._types import Representation as Representation
+from ._types import Rotation6DLayout as Rotation6DLayout
+
 __version__ = "0.1.0"
 
-__all__ = ["__version__"]
+__all__ = ["EulerConvention", "Representation", "Rotation6DLayout", "__version__"]

@@ -36,19 +36,30 @@ def _normalize_or(xp: Any, v: Any, n2: Any, degenerate: Any, fallback: Any) -> A
     return xp.where(degenerate[..., None], fallback, v / xp.sqrt(safe)[..., None])
 
 
+def _layout_axis(fname: str, layout: str) -> int:
+    """The matrix axis that stacks the 6D vectors: -1 (they are columns) or -2 (rows); ``ValueError``
+    naming ``fname`` for any other layout."""
+    if layout == "columns":
+        return -1
+    if layout == "rows":
+        return -2
+    raise ValueError(f"{fname}: expected layout 'columns' or 'rows', got {layout!r}")
+
+
 @op(d6=(6,))
-def rotation_6d_to_matrix(xp: Any, d6: Any) -> Any:
+def rotation_6d_to_matrix(xp: Any, d6: Any, *, layout: str = "columns") -> Any:
     """Rotation matrix from the 6D representation of Zhou et al. (CVPR 2019), by Gram-Schmidt.
 
     Args:
-        d6: shape ``(..., 6)``: two 3-vectors ``(a1, a2)``, the unnormalised first two **columns** of
-            the matrix, as in the paper. Note: pytorch3d's ``rotation_6d_to_matrix`` reads them as the
-            first two **rows**, so its matrices are the transposes of these (a silent transpose for
-            code that migrates): ``pytorch3d_R == diffquat_R.transpose(-1, -2)`` for the same ``d6``.
+        d6: shape ``(..., 6)``: two 3-vectors ``(a1, a2)``, unnormalised.
+        layout: ``"columns"`` (the default, as in the paper): ``a1`` and ``a2`` are the first two
+            **columns** of the matrix. ``"rows"``: they are its first two **rows**, the layout of
+            pytorch3d's ``rotation_6d_to_matrix`` (the transpose: weights trained with pytorch3d
+            need ``layout="rows"``, or every rotation comes out inverted).
 
     Returns:
-        Rotation matrices, shape ``(..., 3, 3)``, columns ``b1 = a1/|a1|``, ``b2`` = the normalised
-        part of ``a2`` orthogonal to ``b1``, ``b3 = b1 x b2``.
+        Rotation matrices, shape ``(..., 3, 3)``, whose columns (rows for ``layout="rows"``) are
+        ``b1 = a1/|a1|``, ``b2`` = the normalised part of ``a2`` orthogonal to ``b1``, ``b3 = b1 x b2``.
 
     Degenerate input never raises and has finite gradients: where ``|a1|^2`` is below the smallest
     normal number, ``b1 = (1, 0, 0)``; where the part of ``a2`` orthogonal to ``b1`` is below
@@ -56,6 +67,7 @@ def rotation_6d_to_matrix(xp: Any, d6: Any) -> Any:
     orthogonal to ``b1`` in the plane of ``b1`` and the coordinate axis least aligned with ``b1``
     (the first such axis on ties). So the zero vector gives the identity.
     """
+    axis = _layout_axis("rotation_6d_to_matrix", layout)
     a1, a2 = d6[..., 0:3], d6[..., 3:6]
     info = xp.finfo(d6.dtype)
     n1 = xp.sum(a1 * a1, axis=-1)
@@ -76,22 +88,26 @@ def rotation_6d_to_matrix(xp: Any, d6: Any) -> Any:
     f = f / xp.sqrt(xp.sum(f * f, axis=-1, keepdims=True))
     b2 = _normalize_or(xp, u2, n_u2, parallel, f)
     b3 = _cross(xp, b1, b2)
-    return xp.stack([b1, b2, b3], axis=-1)
+    return xp.stack([b1, b2, b3], axis=axis)
 
 
 @op(matrix=(3, 3))
-def matrix_to_rotation_6d(xp: Any, matrix: Any) -> Any:
-    """The 6D representation of Zhou et al. (CVPR 2019): the first two **columns** of the matrix.
+def matrix_to_rotation_6d(xp: Any, matrix: Any, *, layout: str = "columns") -> Any:
+    """The 6D representation of Zhou et al. (CVPR 2019): the first two columns (or rows) of the matrix.
 
     Args:
         matrix: shape ``(..., 3, 3)``.
+        layout: ``"columns"`` (the default, as in the paper) or ``"rows"`` (pytorch3d's layout), as
+            in ``rotation_6d_to_matrix``.
 
     Returns:
-        Shape ``(..., 6)``: ``(R[:, 0], R[:, 1])``, i.e. ``(R00, R10, R20, R01, R11, R21)``. pytorch3d's
-        ``matrix_to_rotation_6d`` takes the first two rows instead (the transpose). For a rotation
-        matrix, ``rotation_6d_to_matrix`` of the result gives the matrix back.
+        Shape ``(..., 6)``: ``(R[:, 0], R[:, 1])``, i.e. ``(R00, R10, R20, R01, R11, R21)``; with
+        ``layout="rows"``, ``(R[0, :], R[1, :])``, i.e. ``(R00, R01, R02, R10, R11, R12)``. For a
+        rotation matrix, ``rotation_6d_to_matrix`` of the result in the same layout gives it back.
     """
-    return xp.concat([matrix[..., :, 0], matrix[..., :, 1]], axis=-1)
+    if _layout_axis("matrix_to_rotation_6d", layout) == -1:
+        return xp.concat([matrix[..., :, 0], matrix[..., :, 1]], axis=-1)
+    return xp.concat([matrix[..., 0, :], matrix[..., 1, :]], axis=-1)
 
 
 # ---------------------------------------------------------------------------------------------------

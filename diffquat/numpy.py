@@ -11,6 +11,8 @@ from numpy.typing import ArrayLike, NDArray
 from . import _algebra, _core, _euler
 from . import _representations as _rep
 from ._backend import Backend, documented, shape_tuple
+from ._public import public_dir as _public_dir
+from ._types import EulerConvention, Rotation6DLayout
 
 __all__ = [
     "axis_angle_to_matrix",
@@ -41,6 +43,8 @@ __all__ = [
     "wxyz_to_xyzw",
     "xyzw_to_wxyz",
 ]
+# dir() lists the public API only (see diffquat._public).
+__dir__ = _public_dir(globals())
 
 
 def _convert(fname: str, argname: str, x: Any, scalar: bool) -> Any:
@@ -108,13 +112,13 @@ def xyzw_to_wxyz(q: ArrayLike) -> NDArray[Any]:
 
 
 @documented(_rep.rotation_6d_to_matrix)
-def rotation_6d_to_matrix(d6: ArrayLike) -> NDArray[Any]:
-    return _B(_rep.rotation_6d_to_matrix, d6)
+def rotation_6d_to_matrix(d6: ArrayLike, *, layout: Rotation6DLayout = "columns") -> NDArray[Any]:
+    return _B(_rep.rotation_6d_to_matrix, d6, layout=layout)
 
 
 @documented(_rep.matrix_to_rotation_6d)
-def matrix_to_rotation_6d(matrix: ArrayLike) -> NDArray[Any]:
-    return _B(_rep.matrix_to_rotation_6d, matrix)
+def matrix_to_rotation_6d(matrix: ArrayLike, *, layout: Rotation6DLayout = "columns") -> NDArray[Any]:
+    return _B(_rep.matrix_to_rotation_6d, matrix, layout=layout)
 
 
 @documented(_rep.special_procrustes)
@@ -156,12 +160,16 @@ def matrix_to_axis_angle(matrix: ArrayLike) -> NDArray[Any]:
 
 
 @documented(_euler.euler_angles_to_matrix)
-def euler_angles_to_matrix(angles: ArrayLike, convention: str, *, degrees: bool = False) -> NDArray[Any]:
+def euler_angles_to_matrix(
+    angles: ArrayLike, convention: EulerConvention, *, degrees: bool = False
+) -> NDArray[Any]:
     return _B(_euler.euler_angles_to_matrix, angles, convention=convention, degrees=degrees)
 
 
 @documented(_euler.matrix_to_euler_angles)
-def matrix_to_euler_angles(matrix: ArrayLike, convention: str, *, degrees: bool = False) -> NDArray[Any]:
+def matrix_to_euler_angles(
+    matrix: ArrayLike, convention: EulerConvention, *, degrees: bool = False
+) -> NDArray[Any]:
     # A NaN or an infinite entry gives NaN angles by design: no floating-point warnings on the way there.
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         return _B(_euler.matrix_to_euler_angles, matrix, convention=convention, degrees=degrees)
@@ -169,7 +177,7 @@ def matrix_to_euler_angles(matrix: ArrayLike, convention: str, *, degrees: bool 
 
 @documented(_euler.euler_angles_to_quaternion)
 def euler_angles_to_quaternion(
-    angles: ArrayLike, convention: str, *, degrees: bool = False, scalar_first: bool = True
+    angles: ArrayLike, convention: EulerConvention, *, degrees: bool = False, scalar_first: bool = True
 ) -> NDArray[Any]:
     return _B(
         _euler.euler_angles_to_quaternion,
@@ -182,7 +190,7 @@ def euler_angles_to_quaternion(
 
 @documented(_euler.quaternion_to_euler_angles)
 def quaternion_to_euler_angles(
-    q: ArrayLike, convention: str, *, degrees: bool = False, scalar_first: bool = True
+    q: ArrayLike, convention: EulerConvention, *, degrees: bool = False, scalar_first: bool = True
 ) -> NDArray[Any]:
     return _B(
         _euler.quaternion_to_euler_angles,

@@ -289,6 +289,16 @@ def _d6(q: np.ndarray) -> tuple[np.ndarray, ...]:
     return (np.concatenate([2.0 * c0, c1 + 0.5 * c0], axis=-1) * _scale(q)[..., None],)
 
 
+def _d6_rows(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The same from the rows of R(q), pytorch3d's layout: (2 r0, r1 + 0.5 r0) * |q|."""
+    r = oracle_quaternion_to_matrix(q)
+    r0, r1 = r[..., 0, :], r[..., 1, :]
+    return (np.concatenate([2.0 * r0, r1 + 0.5 * r0], axis=-1) * _scale(q)[..., None],)
+
+
+LAYOUT_CASES = ("random", "half_turns", "norms", "zero", "batch_scalar", "batch_3x1x2")
+
+
 def oracle_rotation_6d_to_matrix(d6: np.ndarray) -> np.ndarray:
     """Gram-Schmidt by numpy's QR (Householder: an independent algorithm), signs fixed so that the
     diagonal of the triangular factor is positive; the documented fallbacks for degenerate input."""
@@ -432,6 +442,31 @@ OPS = [
         quaternion_args=(),
         output="other",
         scalar_first=False,
+    ),
+    # pytorch3d's layout (the first two rows): the same Gram-Schmidt, stacked the other way. On a few
+    # cases only, the transpose being the one difference: the generic and degenerate (zero) inputs,
+    # half-turns, the dtype range and a batch shape.
+    Op(
+        "rotation_6d_to_matrix",
+        _d6_rows,
+        lambda d6: np.swapaxes(oracle_rotation_6d_to_matrix(d6), -1, -2),
+        quaternion_args=(),
+        output="matrix",
+        scalar_first=False,
+        kwargs={"layout": "rows"},
+        label="rotation_6d_to_matrix[rows]",
+        applies=lambda case: case.name in LAYOUT_CASES,
+    ),
+    Op(
+        "matrix_to_rotation_6d",
+        _matrix,
+        lambda m: np.concatenate([m[..., 0, :], m[..., 1, :]], axis=-1),
+        quaternion_args=(),
+        output="other",
+        scalar_first=False,
+        kwargs={"layout": "rows"},
+        label="matrix_to_rotation_6d[rows]",
+        applies=lambda case: case.name in LAYOUT_CASES,
     ),
     # Three rows: all singular values equal (|q| R: where a library SVD backward divides by zero),
     # det < 0, and rank 2. Each is smooth, so gradients must match finite differences there too.

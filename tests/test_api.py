@@ -4,8 +4,12 @@ from __future__ import annotations
 
 import importlib
 import inspect
+import itertools
+import pkgutil
 import subprocess
 import sys
+import typing
+from types import ModuleType
 
 import numpy as np
 import pytest
@@ -13,6 +17,7 @@ from cases import NOT_IN_TABLE, OPS, Op, only, uniform_quaternions
 from conftest import BACKENDS, Backend
 
 import diffquat.numpy  # noqa: F401  (importing a backend registers every op's shapes)
+from diffquat import _types
 from diffquat._backend import format_shape
 from diffquat._core import SHAPES
 
@@ -224,3 +229,86 @@ def test_ci_runs_the_readme_test_command() -> None:
     test_command = blocks[1]
     assert "pytest" in test_command and "ruff" in test_command and "mypy" in test_command
     assert test_command in (root / ".ci" / "run").read_text().splitlines()
+
+
+def public_modules() -> list[ModuleType]:
+    """Every public module of the package, present and future: no part of its dotted name private."""
+    import diffquat
+
+    names = ["diffquat"] + [
+        m.name
+        for m in pkgutil.walk_packages(diffquat.__path__, "diffquat.")
+        if not any(part.startswith("_") for part in m.name.split("."))
+    ]
+    return [importlib.import_module(n) for n in names]
+
+
+def test_the_public_modules_are_found() -> None:
+    found = {m.__name__ for m in public_modules()}
+    expected = {"diffquat", "diffquat.numpy", "diffquat.torch", "diffquat.torch.nn", "diffquat.jax"}
+    assert expected | {"diffquat.jax.nn"} <= found
+
+
+def test_public_modules_list_only_their_public_api() -> None:
+    """``dir()`` of a public module lists its ``__all__`` and its public submodules, nothing it only
+    imports (``torch``, ``Tensor``, ``Any``, the private machinery that binds the core)."""
+    for module in public_modules():
+        submodules = {
+            k
+            for k, v in vars(module).items()
+            if isinstance(v, ModuleType) and v.__name__.startswith(module.__name__ + ".")
+        }
+        listed = {n for n in dir(module) if not n.startswith("_")}
+        assert listed <= set(module.__all__) | submodules, (module.__name__, listed - set(module.__all__))
+        assert all(hasattr(module, n) for n in module.__all__), module.__name__
+
+
+# Each string option of the public API, by parameter name, and its Literal alias (diffquat/_types.py).
+OPTION_TYPES = {
+    "convention": _types.EulerConvention,
+    "representation": _types.Representation,
+    "layout": _types.Rotation6DLayout,
+    "side": _types.Side,
+    "method": _types.MeanMethod,
+}
+
+
+def test_string_options_are_typed_by_their_literal_alias() -> None:
+    """Wherever a public function or class takes one of the string options, its annotation is the
+    option's alias, so that a type checker sees the allowed values."""
+    checked = 0
+    for module in public_modules():
+        for name in module.__all__:
+            obj = getattr(module, name)
+            fn = obj.__init__ if isinstance(obj, type) else obj
+            if not callable(fn) or (isinstance(obj, type) and fn is object.__init__):
+                continue
+            params = inspect.signature(fn).parameters
+            if not set(params) & set(OPTION_TYPES):
+                continue
+            hints = typing.get_type_hints(fn)
+            for p in set(params) & set(OPTION_TYPES):
+                assert hints[p] == OPTION_TYPES[p], (module.__name__, name, p)
+                checked += 1
+    assert checked >= 3 * 6 + 2 * 3  # the Euler and 6D functions of three backends, and the heads
+
+
+def test_literal_aliases_list_exactly_what_the_functions_accept() -> None:
+    from diffquat import _heads
+    from diffquat._euler import parse_convention
+    from diffquat._representations import _layout_axis
+
+    accepted = set()
+    for letters in itertools.product("XYZxyz", repeat=3):
+        try:
+            parse_convention("f", "".join(letters))
+            accepted.add("".join(letters))
+        except ValueError:
+            pass
+    assert set(typing.get_args(_types.EulerConvention)) == accepted and len(accepted) == 24
+    assert typing.get_args(_types.Representation) == tuple(_heads.REPRESENTATIONS)
+    for layout in typing.get_args(_types.Rotation6DLayout):
+        _layout_axis("f", layout)
+    import diffquat
+
+    assert diffquat.EulerConvention is _types.EulerConvention

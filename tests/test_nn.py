@@ -161,6 +161,33 @@ def test_torch_layer_trains_its_parameters() -> None:
         assert p.grad is not None and bool(torch.all(torch.isfinite(p.grad))) and bool(torch.any(p.grad != 0))
 
 
+def test_torch_head_saves_its_representation_and_refuses_another(tmp_path: Any) -> None:
+    """The representation travels in the state_dict (through torch.save and a weights-only load): a
+    head of the same representation loads the weights and gives the same rotations; one of another
+    representation refuses them, naming both, even where the shapes agree (axis-angle and Euler both
+    have 3 raw outputs) and before torch reports a size mismatch (quaternion: 4 raw outputs)."""
+    torch.manual_seed(0)
+    saved = tnn.RotationHead(5, "axis_angle", dtype=torch.float64)
+    code = saved.state_dict()["representation_code"]
+    assert bytes(code.tolist()).rstrip(b"\0") == b"axis_angle"
+    torch.save(saved.state_dict(), tmp_path / "head.pt")
+    state = torch.load(tmp_path / "head.pt", weights_only=True)
+    loaded = tnn.RotationHead(5, "axis_angle", dtype=torch.float64)
+    loaded.load_state_dict(state)
+    x = torch.randn(3, 5, dtype=torch.float64)
+    torch.testing.assert_close(loaded(x), saved(x), rtol=0, atol=0)
+    for other in ("euler", "quaternion"):
+        head = tnn.RotationHead(5, other, dtype=torch.float64)
+        expected = rf"RotationHead: .* saved for representation 'axis_angle', this head's is '{other}'"
+        with pytest.raises(ValueError, match=expected):
+            head.load_state_dict(state)
+
+
+def test_torch_head_documents_its_forward() -> None:
+    doc = tnn.RotationHead.forward.__doc__ or ""
+    assert "(..., 3, 3)" in doc and "(..., in_features)" in doc
+
+
 @heads
 def test_unknown_representation_and_wrong_size_raise(backend: Backend) -> None:
     nn = tnn if backend.name == "torch" else jnn

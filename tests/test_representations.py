@@ -13,6 +13,7 @@ import pytest
 import torch
 from cases import oracle_fit_rotation, oracle_special_procrustes, uniform_quaternions
 from conftest import BACKENDS
+from scipy.spatial.transform import Rotation
 
 import diffquat.numpy as dn
 
@@ -102,6 +103,31 @@ def test_6d_round_trip_and_pytorch3d_convention() -> None:
     d6 = dn.matrix_to_rotation_6d(r)
     np.testing.assert_array_equal(d6[:, :3], r[:, :, 0])
     np.testing.assert_allclose(dn.rotation_6d_to_matrix(d6), r, atol=1e-15)
+
+
+@pytest.mark.parametrize("name", ["numpy", "torch", "jax"])
+def test_pytorch3d_6d_layout_round_trips_with_layout_rows(name: str) -> None:
+    """pytorch3d's 6D is the first two rows of R, flattened (its matrix_to_rotation_6d drops the last
+    row; its rotation_6d_to_matrix stacks b1, b2, b3 as rows). Written here from that definition, not
+    from pytorch3d (not installed): ``layout="rows"`` reads and writes it exactly, and the default
+    layout reads the same numbers as the inverse rotation, the trap of a ported checkpoint."""
+    module, backend = BACKENDS[name].module, BACKENDS[name]
+    r = Rotation.random(16, random_state=7).as_matrix()
+    pytorch3d_d6 = r[:, :2, :].reshape(16, 6)
+    d6 = backend.array(pytorch3d_d6, "float64")
+    np.testing.assert_allclose(
+        backend.to_numpy(module.rotation_6d_to_matrix(d6, layout="rows")), r, atol=1e-15
+    )
+    np.testing.assert_allclose(
+        backend.to_numpy(module.matrix_to_rotation_6d(backend.array(r, "float64"), layout="rows")),
+        pytorch3d_d6,
+        atol=0,
+    )
+    inverse = backend.to_numpy(module.rotation_6d_to_matrix(d6))
+    np.testing.assert_allclose(inverse, np.swapaxes(r, -1, -2), atol=1e-15)
+    for fn, x in [("rotation_6d_to_matrix", d6), ("matrix_to_rotation_6d", backend.array(r, "float64"))]:
+        with pytest.raises(ValueError, match=f"{fn}: expected layout 'columns' or 'rows', got 'row'"):
+            getattr(module, fn)(x, layout="row")
 
 
 @pytest.mark.parametrize("name", ["numpy", "torch", "jax"])

@@ -23,6 +23,8 @@ from jax.typing import ArrayLike
 from .. import _algebra, _core, _euler
 from .. import _representations as _rep
 from .._backend import Backend, documented, shape_tuple
+from .._public import public_dir as _public_dir
+from .._types import EulerConvention, Rotation6DLayout
 from ._custom import custom_derivative, custom_jvp_rule
 from ._namespace import XP
 
@@ -56,6 +58,8 @@ __all__ = [
     "wxyz_to_xyzw",
     "xyzw_to_wxyz",
 ]
+# dir() lists the public API only (see diffquat._public).
+__dir__ = _public_dir(globals())
 
 
 def _convert(fname: str, argname: str, x: Any, scalar: bool) -> Any:
@@ -299,7 +303,7 @@ _special_procrustes = _compiled(
 _smallest_eigenvector = custom_derivative(
     _rep.smallest_eigenvector, _rep.eigenvector_tangent, _rep.eigenvector_cotangent
 )
-_rotation_6d_to_matrix = _compiled(_rep.rotation_6d_to_matrix)
+_rotation_6d_to_matrix = _compiled(_rep.rotation_6d_to_matrix, "layout")
 _symmetric_matrix_to_quaternion = _compiled(
     _rep.symmetric_matrix_to_quaternion, "scalar_first", "eigenvector"
 )
@@ -307,13 +311,13 @@ _fit_rotation = _compiled(_rep.fit_rotation, "procrustes")
 
 
 @documented(_rep.rotation_6d_to_matrix)
-def rotation_6d_to_matrix(d6: ArrayLike) -> Array:
-    return _B(_rotation_6d_to_matrix, d6)
+def rotation_6d_to_matrix(d6: ArrayLike, *, layout: Rotation6DLayout = "columns") -> Array:
+    return _B(_rotation_6d_to_matrix, d6, layout=layout)
 
 
 @documented(_rep.matrix_to_rotation_6d)
-def matrix_to_rotation_6d(matrix: ArrayLike) -> Array:
-    return _B(_rep.matrix_to_rotation_6d, matrix)
+def matrix_to_rotation_6d(matrix: ArrayLike, *, layout: Rotation6DLayout = "columns") -> Array:
+    return _B(_rep.matrix_to_rotation_6d, matrix, layout=layout)
 
 
 @documented(_rep.special_procrustes)
@@ -367,18 +371,18 @@ def matrix_to_axis_angle(matrix: ArrayLike) -> Array:
 
 
 @documented(_euler.euler_angles_to_matrix)
-def euler_angles_to_matrix(angles: ArrayLike, convention: str, *, degrees: bool = False) -> Array:
+def euler_angles_to_matrix(angles: ArrayLike, convention: EulerConvention, *, degrees: bool = False) -> Array:
     return _B(_euler.euler_angles_to_matrix, angles, convention=convention, degrees=degrees)
 
 
 @documented(_euler.matrix_to_euler_angles)
-def matrix_to_euler_angles(matrix: ArrayLike, convention: str, *, degrees: bool = False) -> Array:
+def matrix_to_euler_angles(matrix: ArrayLike, convention: EulerConvention, *, degrees: bool = False) -> Array:
     return _B(_euler.matrix_to_euler_angles, matrix, convention=convention, degrees=degrees)
 
 
 @documented(_euler.euler_angles_to_quaternion)
 def euler_angles_to_quaternion(
-    angles: ArrayLike, convention: str, *, degrees: bool = False, scalar_first: bool = True
+    angles: ArrayLike, convention: EulerConvention, *, degrees: bool = False, scalar_first: bool = True
 ) -> Array:
     return _B(
         _euler.euler_angles_to_quaternion,
@@ -391,7 +395,7 @@ def euler_angles_to_quaternion(
 
 @documented(_euler.quaternion_to_euler_angles)
 def quaternion_to_euler_angles(
-    q: ArrayLike, convention: str, *, degrees: bool = False, scalar_first: bool = True
+    q: ArrayLike, convention: EulerConvention, *, degrees: bool = False, scalar_first: bool = True
 ) -> Array:
     return _B(
         _euler.quaternion_to_euler_angles,

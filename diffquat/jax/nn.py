@@ -28,6 +28,8 @@ from jax.typing import ArrayLike
 import diffquat.jax as _dq
 
 from .. import _heads
+from .._public import public_dir as _public_dir
+from .._types import Representation
 
 __all__ = [
     "REPRESENTATIONS",
@@ -36,16 +38,18 @@ __all__ = [
     "representation_to_matrix",
     "rotation_head",
 ]
+# dir() lists the public API only (see diffquat._public).
+__dir__ = _public_dir(globals())
 
 REPRESENTATIONS: tuple[str, ...] = tuple(_heads.REPRESENTATIONS)
 
 
-def representation_size(representation: str) -> int:
+def representation_size(representation: Representation) -> int:
     """Number of raw outputs a head of ``representation`` needs (e.g. 6 for ``"6d"``)."""
     return _heads.representation_size(representation)
 
 
-def representation_to_matrix(raw: ArrayLike, representation: str) -> Array:
+def representation_to_matrix(raw: ArrayLike, representation: Representation) -> Array:
     """Rotation matrices ``(..., 3, 3)`` from raw outputs ``(..., n)``, ``n = representation_size(...)``.
 
     Differentiable everywhere the representation is; any raw output gives a rotation (for example a
@@ -55,7 +59,7 @@ def representation_to_matrix(raw: ArrayLike, representation: str) -> Array:
 
 
 def init_rotation_head(
-    key: Array, in_features: int, representation: str, *, dtype: Any = None
+    key: Array, in_features: int, representation: Representation, *, dtype: Any = None
 ) -> dict[str, Array]:
     """Parameters ``{"w": (in_features, n), "b": (n,)}`` of a linear rotation head, initialised as
     ``torch.nn.Linear`` is (uniform in +-1/sqrt(in_features)), so both backends start alike."""
@@ -69,7 +73,7 @@ def init_rotation_head(
     }
 
 
-def rotation_head(params: dict[str, Array], features: ArrayLike, representation: str) -> Array:
+def rotation_head(params: dict[str, Array], features: ArrayLike, representation: Representation) -> Array:
     """``representation_to_matrix(features @ w + b)``: features ``(..., in_features)`` to ``(..., 3, 3)``."""
     x = jnp.asarray(features)
     # The bias is broadcast explicitly: diffquat works under jax_numpy_rank_promotion="raise".

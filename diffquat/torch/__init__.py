@@ -15,6 +15,8 @@ from torch.jit._trace import TracerWarning, is_tracing
 from .. import _algebra, _core, _euler
 from .. import _representations as _rep
 from .._backend import Backend, documented, shape_tuple
+from .._public import public_dir as _public_dir
+from .._types import EulerConvention, Rotation6DLayout
 from . import _dispatch
 from ._custom import custom_derivative
 
@@ -47,6 +49,8 @@ __all__ = [
     "wxyz_to_xyzw",
     "xyzw_to_wxyz",
 ]
+# dir() lists the public API only (see diffquat._public).
+__dir__ = _public_dir(globals())
 
 
 def _convert(fname: str, argname: str, x: Any, scalar: bool) -> Any:
@@ -165,13 +169,13 @@ _smallest_eigenvector = custom_derivative(
 
 
 @documented(_rep.rotation_6d_to_matrix)
-def rotation_6d_to_matrix(d6: Tensor) -> Tensor:
-    return _B(_rep.rotation_6d_to_matrix, d6)
+def rotation_6d_to_matrix(d6: Tensor, *, layout: Rotation6DLayout = "columns") -> Tensor:
+    return _B(_rep.rotation_6d_to_matrix, d6, layout=layout)
 
 
 @documented(_rep.matrix_to_rotation_6d)
-def matrix_to_rotation_6d(matrix: Tensor) -> Tensor:
-    return _B(_rep.matrix_to_rotation_6d, matrix)
+def matrix_to_rotation_6d(matrix: Tensor, *, layout: Rotation6DLayout = "columns") -> Tensor:
+    return _B(_rep.matrix_to_rotation_6d, matrix, layout=layout)
 
 
 @documented(_rep.special_procrustes)
@@ -218,7 +222,7 @@ def matrix_to_axis_angle(matrix: Tensor) -> Tensor:
 
 
 @documented(_euler.euler_angles_to_matrix)
-def euler_angles_to_matrix(angles: Tensor, convention: str, *, degrees: bool = False) -> Tensor:
+def euler_angles_to_matrix(angles: Tensor, convention: EulerConvention, *, degrees: bool = False) -> Tensor:
     return _B(
         _euler.euler_angles_to_matrix,
         angles,
@@ -229,13 +233,13 @@ def euler_angles_to_matrix(angles: Tensor, convention: str, *, degrees: bool = F
 
 
 @documented(_euler.matrix_to_euler_angles)
-def matrix_to_euler_angles(matrix: Tensor, convention: str, *, degrees: bool = False) -> Tensor:
+def matrix_to_euler_angles(matrix: Tensor, convention: EulerConvention, *, degrees: bool = False) -> Tensor:
     return _B(_euler.matrix_to_euler_angles, matrix, convention=convention, degrees=degrees)
 
 
 @documented(_euler.euler_angles_to_quaternion)
 def euler_angles_to_quaternion(
-    angles: Tensor, convention: str, *, degrees: bool = False, scalar_first: bool = True
+    angles: Tensor, convention: EulerConvention, *, degrees: bool = False, scalar_first: bool = True
 ) -> Tensor:
     return _B(
         _euler.euler_angles_to_quaternion,
@@ -248,7 +252,7 @@ def euler_angles_to_quaternion(
 
 @documented(_euler.quaternion_to_euler_angles)
 def quaternion_to_euler_angles(
-    q: Tensor, convention: str, *, degrees: bool = False, scalar_first: bool = True
+    q: Tensor, convention: EulerConvention, *, degrees: bool = False, scalar_first: bool = True
 ) -> Tensor:
     return _B(
         _euler.quaternion_to_euler_angles,

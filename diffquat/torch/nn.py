@@ -18,25 +18,31 @@ The same maps exist as pure functions for JAX in :mod:`diffquat.jax.nn`.
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from torch import Tensor, nn
 
 import diffquat.torch as _dq
 
 from .. import _heads
+from .._public import public_dir as _public_dir
+from .._types import Representation
 from . import _dispatch
 
 __all__ = ["REPRESENTATIONS", "RotationHead", "representation_size", "representation_to_matrix"]
+# dir() lists the public API only (see diffquat._public).
+__dir__ = _public_dir(globals())
 
 REPRESENTATIONS: tuple[str, ...] = tuple(_heads.REPRESENTATIONS)
 
 
-def representation_size(representation: str) -> int:
+def representation_size(representation: Representation) -> int:
     """Number of raw outputs a head of ``representation`` needs (e.g. 6 for ``"6d"``)."""
     return _heads.representation_size(representation)
 
 
-def representation_to_matrix(raw: Tensor, representation: str) -> Tensor:
+def representation_to_matrix(raw: Tensor, representation: Representation) -> Tensor:
     """Rotation matrices ``(..., 3, 3)`` from raw outputs ``(..., n)``, ``n = representation_size(...)``.
 
     Differentiable everywhere the representation is; any raw output gives a rotation (for example a
@@ -61,25 +67,62 @@ class RotationHead(nn.Module):
         bias, device, dtype: as for ``torch.nn.Linear``.
 
     Shapes: ``(..., in_features)`` in, rotation matrices ``(..., 3, 3)`` out (column-vector convention).
+
+    The representation is part of the module's ``state_dict``, as the buffer ``representation_code``
+    (its name's bytes, zero-padded): loading weights saved by a head of another representation raises
+    ``ValueError`` naming both, rather than loading them into a map they were not trained for (the
+    axis-angle and Euler heads both have 3 raw outputs, so their weights would otherwise load without
+    complaint). A buffer, not a non-tensor extra state: every exporter (TorchScript, ONNX,
+    ``torch.export``) and ``DistributedDataParallel`` handle tensors in a state dict.
     """
+
+    representation_code: Tensor
 
     def __init__(
         self,
         in_features: int,
-        representation: str = "6d",
+        representation: Representation = "6d",
         *,
         bias: bool = True,
         device: torch.device | str | None = None,
         dtype: torch.dtype | None = None,
     ) -> None:
         super().__init__()
-        self.representation = representation
+        self.representation: Representation = representation
         self.linear = nn.Linear(
             in_features, representation_size(representation), bias=bias, device=device, dtype=dtype
         )
+        self.register_buffer("representation_code", _encode(representation, device))
+        self.register_load_state_dict_pre_hook(_check_representation)  # type: ignore[no-untyped-call]
 
     def forward(self, features: Tensor) -> Tensor:
+        """Rotation matrices ``(..., 3, 3)`` of features ``(..., in_features)``: the linear layer, then
+        ``representation_to_matrix`` of its raw outputs. Any features give a rotation; the map runs in
+        float32 at least (under ``torch.autocast`` too) and returns the linear layer's dtype."""
         return representation_to_matrix(self.linear(features), self.representation)
 
     def extra_repr(self) -> str:
         return f"representation={self.representation!r}"
+
+
+_CODE_BYTES = 16  # longer than every representation's name
+
+
+def _encode(representation: str, device: torch.device | str | None) -> Tensor:
+    code = representation.encode().ljust(_CODE_BYTES, b"\0")
+    return torch.tensor(list(code), dtype=torch.uint8, device=device)
+
+
+def _check_representation(module: nn.Module, state_dict: dict[str, Any], prefix: str, *args: Any) -> None:
+    """Before a ``state_dict`` loads into a ``RotationHead``: the representation it was saved for must
+    be the head's (a missing code is left to ``load_state_dict``'s missing-key rule)."""
+    code = state_dict.get(prefix + "representation_code")
+    if code is None:
+        return
+    saved = bytes(code.tolist()).rstrip(b"\0").decode(errors="replace")
+    if saved != module.representation:
+        raise ValueError(
+            f"RotationHead: the weights being loaded were saved for representation {saved!r}, "
+            f"this head's is {module.representation!r}; build the head with "
+            f"representation={saved!r} to load them"
+        )
