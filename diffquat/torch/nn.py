@@ -18,7 +18,7 @@ The same maps exist as pure functions for JAX in :mod:`diffquat.jax.nn`.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor, nn
@@ -100,6 +100,11 @@ class RotationHead(nn.Module):
         ``representation_to_matrix`` of its raw outputs. Any features give a rotation; the map runs in
         float32 at least (under ``torch.autocast`` too) and returns the linear layer's dtype."""
         return representation_to_matrix(self.linear(features), self.representation)
+
+    if TYPE_CHECKING:
+        # torch types ``Module.__call__`` as returning Any; a call runs ``forward``, so a user's type
+        # checker sees tensor in, tensor out.
+        def __call__(self, features: Tensor) -> Tensor: ...
 
     def extra_repr(self) -> str:
         return f"representation={self.representation!r}"
