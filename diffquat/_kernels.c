@@ -24,8 +24,13 @@
  * batches are split over threads.
  */
 
+/* DIFFQUAT_KERNELS_ONLY: the kernels and their thread split alone, without the Python and XLA entry
+ * points (no Python headers): what tests/test_kernels.py cross-compiles for aarch64 into a standalone
+ * program and runs under qemu, to check that a build without x86 intrinsics gives the same bits. */
+#if !defined(DIFFQUAT_KERNELS_ONLY)
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
+#endif
 
 #include <float.h>
 #include <math.h>
@@ -171,10 +176,22 @@ static inline int scatter9_fast_f32(float *dst, float v[9][BLOCK], int cnt) {
 /* Without such moves (float64; float32 off x86-64) every row goes through the one-row loops, whose
  * fixed offsets the compiler vectorises where it can: the fast moves move no row. */
 #define DEFINE_NO_FAST_MOVES(T, SUFFIX)                                                             \
-    static inline int gather4_fast_##SUFFIX(T v[4][BLOCK], const T *src, int cnt) { return 0; }     \
-    static inline int gather9_fast_##SUFFIX(T v[9][BLOCK], const T *src, int cnt) { return 0; }     \
-    static inline int scatter4_fast_##SUFFIX(T *dst, T v[4][BLOCK], int cnt) { return 0; }          \
-    static inline int scatter9_fast_##SUFFIX(T *dst, T v[9][BLOCK], int cnt) { return 0; }
+    static inline int gather4_fast_##SUFFIX(T v[4][BLOCK], const T *src, int cnt) {                 \
+        (void)v, (void)src, (void)cnt;                                                              \
+        return 0;                                                                                   \
+    }                                                                                               \
+    static inline int gather9_fast_##SUFFIX(T v[9][BLOCK], const T *src, int cnt) {                 \
+        (void)v, (void)src, (void)cnt;                                                              \
+        return 0;                                                                                   \
+    }                                                                                               \
+    static inline int scatter4_fast_##SUFFIX(T *dst, T v[4][BLOCK], int cnt) {                      \
+        (void)dst, (void)v, (void)cnt;                                                              \
+        return 0;                                                                                   \
+    }                                                                                               \
+    static inline int scatter9_fast_##SUFFIX(T *dst, T v[9][BLOCK], int cnt) {                      \
+        (void)dst, (void)v, (void)cnt;                                                              \
+        return 0;                                                                                   \
+    }
 #if !defined(FAST_MOVES)
 DEFINE_NO_FAST_MOVES(float, f32)
 #endif
@@ -438,6 +455,8 @@ static void run(Kernel kernel, const Args *args, int64_t n, int64_t threads) {
     }
 }
 
+#if !defined(DIFFQUAT_KERNELS_ONLY)
+
 /* The Python entry points take integers only (data pointers, strides in elements, sizes, flags),
  * checked for count and type; the Python side guarantees that they describe valid tensors. */
 static int read_ints(PyObject *const *argv, Py_ssize_t argc, Py_ssize_t want, const char *name,
@@ -464,6 +483,7 @@ static PyObject *launch(Kernel kernel, const Args *args, int64_t n, int64_t thre
 
 /* q2m_forward(dtype, threads, n, first, q, q_row, q_component, out) */
 static PyObject *q2m_forward(PyObject *self, PyObject *const *argv, Py_ssize_t argc) {
+    (void)self; /* a module function: no instance */
     int64_t v[8];
     if (read_ints(argv, argc, 8, "q2m_forward", v) < 0) return NULL;
     Args args = {.a = PTR(v[4]), .sa = {v[5], v[6], 0}, .out = PTR(v[7]), .first = (int)v[3]};
@@ -472,6 +492,7 @@ static PyObject *q2m_forward(PyObject *self, PyObject *const *argv, Py_ssize_t a
 
 /* q2m_backward(dtype, threads, n, first, q, q_row, q_component, grad, grad_row, grad_i, grad_j, out) */
 static PyObject *q2m_backward(PyObject *self, PyObject *const *argv, Py_ssize_t argc) {
+    (void)self; /* a module function: no instance */
     int64_t v[12];
     if (read_ints(argv, argc, 12, "q2m_backward", v) < 0) return NULL;
     Args args = {.a = PTR(v[4]), .sa = {v[5], v[6], 0}, .b = PTR(v[7]), .sb = {v[8], v[9], v[10]},
@@ -481,6 +502,7 @@ static PyObject *q2m_backward(PyObject *self, PyObject *const *argv, Py_ssize_t 
 
 /* m2q_forward(dtype, threads, n, first, m, m_row, m_i, m_j, out) */
 static PyObject *m2q_forward(PyObject *self, PyObject *const *argv, Py_ssize_t argc) {
+    (void)self; /* a module function: no instance */
     int64_t v[9];
     if (read_ints(argv, argc, 9, "m2q_forward", v) < 0) return NULL;
     Args args = {.a = PTR(v[4]), .sa = {v[5], v[6], v[7]}, .out = PTR(v[8]), .first = (int)v[3]};
@@ -490,6 +512,7 @@ static PyObject *m2q_forward(PyObject *self, PyObject *const *argv, Py_ssize_t a
 /* m2q_backward(dtype, threads, n, first, m, m_row, m_i, m_j, q, q_row, q_component,
  *              grad, grad_row, grad_component, out) */
 static PyObject *m2q_backward(PyObject *self, PyObject *const *argv, Py_ssize_t argc) {
+    (void)self; /* a module function: no instance */
     int64_t v[15];
     if (read_ints(argv, argc, 15, "m2q_backward", v) < 0) return NULL;
     Args args = {.a = PTR(v[4]), .sa = {v[5], v[6], v[7]}, .b = PTR(v[8]), .sb = {v[9], v[10], 0},
@@ -619,6 +642,7 @@ static void *xla_m2q_backward_xyzw(XlaCallFrame *frame) { return xla_call(frame,
 
 /* xla_handlers(): {name: PyCapsule of the handler}, for jax.ffi.register_ffi_target. */
 static PyObject *xla_handlers(PyObject *self, PyObject *unused) {
+    (void)self, (void)unused; /* METH_NOARGS */
     static const struct {
         const char *name;
         void *(*handler)(XlaCallFrame *);
@@ -680,3 +704,5 @@ PyMODINIT_FUNC PyInit__kernels(void) {
     }
     return m;
 }
+
+#endif /* !DIFFQUAT_KERNELS_ONLY */
