@@ -4,23 +4,11 @@ Import the backend you use; ``import diffquat`` itself imports neither torch nor
 
     import diffquat.torch as dq   # or diffquat.jax, diffquat.numpy
 
-Conventions, identical on every backend:
-
-- Quaternions have shape ``(..., 4)``. ``scalar_first=True`` (the default) reads (w, x, y, z);
-  ``scalar_first=False`` reads (x, y, z, w), the order of ROS, scipy and Isaac. Every function that
-  takes or returns a quaternion has this keyword.
-- Rotation matrices have shape ``(..., 3, 3)`` and act on column vectors: ``R @ v`` rotates ``v`` from
-  the local frame into the global frame (active rotation), as in Kuipers, *Quaternions and Rotation
-  Sequences*, section 5.14.
-- Quaternions are returned in canonical sign: w > 0, and where w = 0 the first non-zero of (x, y, z)
-  is positive (scipy's ``as_quat(canonical=True)``).
-- Quaternions going in may have any non-zero norm; the result does not depend on it. The zero
-  quaternion gives the identity (matrix or quaternion), with a finite gradient.
-- Any leading batch shape, ``()`` and empty batches included. Dtype and device are preserved;
-  float16 and bfloat16 are computed in float32 and returned in the input dtype.
-- A non-floating input raises ``TypeError``; a wrong trailing shape raises ``ValueError`` naming the
-  function, the expected shape and the shape received. Values never raise (that is impossible under
-  ``jit``): edge cases have one documented result instead.
+The conventions, identical on every backend, are spelled out in full on the documentation's
+Conventions page (``docs/conventions.md``). In short: quaternions ``(..., 4)`` scalar first (w, x, y, z)
+unless ``scalar_first=False``; matrices ``(..., 3, 3)`` act on column vectors (active rotations);
+returned quaternions have w > 0; any input norm, the zero quaternion being the identity; any batch
+shape; float16 and bfloat16 computed in float32; wrong shapes and dtypes raise, values never do.
 """
 
 from ._types import EulerConvention as EulerConvention

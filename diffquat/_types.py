@@ -11,29 +11,31 @@ from __future__ import annotations
 
 from typing import Literal, TypeAlias
 
-# The 24 Euler conventions, scipy's rule: upper case intrinsic (rotations about the axes of the
-# rotating frame), lower case extrinsic (about the fixed axes); the 6 Tait-Bryan sequences (three
-# different axes) and the 6 proper ones (first axis = third) in each case.
 EulerConvention: TypeAlias = Literal[
     "XYZ", "XZY", "YXZ", "YZX", "ZXY", "ZYX",
     "XYX", "XZX", "YXY", "YZY", "ZXZ", "ZYZ",
     "xyz", "xzy", "yxz", "yzx", "zxy", "zyx",
     "xyx", "xzx", "yxy", "yzy", "zxz", "zyz",
 ]  # fmt: skip
+"""The 24 Euler conventions, scipy's rule: upper case is intrinsic (rotations about the axes of the
+rotating frame, ``"XYZ"``: ``R = R_X(a) R_Y(b) R_Z(c)``), lower case extrinsic (about the fixed axes,
+``"xyz"``: ``R = R_z(c) R_y(b) R_x(a)``); in each case the 6 Tait-Bryan sequences (three different
+axes) and the 6 proper ones (first axis = third)."""
 
-# What a rotation head regresses (diffquat.torch.nn, diffquat.jax.nn), by its number of raw outputs:
-# 4, 3, 3, 6, 9 and 10.
 Representation: TypeAlias = Literal["quaternion", "axis_angle", "euler", "6d", "9d", "10d"]
+"""What a rotation head regresses (``diffquat.torch.nn``, ``diffquat.jax.nn``), with 4, 3, 3, 6, 9 and
+10 raw outputs."""
 
-# How the 6D representation stores the first two columns of a rotation matrix: "columns" (Zhou et
-# al.'s paper, diffquat's default) stacks the first two columns, "rows" the first two rows (pytorch3d's
-# layout, which is the transpose: a checkpoint trained with pytorch3d reads its 6D outputs so).
 Rotation6DLayout: TypeAlias = Literal["columns", "rows"]
+"""How a 6D vector holds its two 3-vectors: ``"columns"`` (Zhou et al.'s paper, diffquat's default),
+the first two columns of the matrix; ``"rows"`` (pytorch3d's layout), its first two rows, which is
+the transpose: weights trained with pytorch3d's 6D need ``layout="rows"``."""
 
-# On which side a tangent vector perturbs a rotation (the Lie-group plus and minus, and the left and
-# right Jacobians): "right" is R exp(delta), "left" is exp(delta) R.
 Side: TypeAlias = Literal["left", "right"]
+"""On which side a tangent vector perturbs a rotation (the Lie-group plus and minus, and the left and
+right Jacobians): ``"right"`` is ``R exp(delta)``, ``"left"`` is ``exp(delta) R``."""
 
-# The rotation averages: "chordal" (the projection of the arithmetic mean of the matrices, scipy's
-# Rotation.mean), "geodesic" (the Karcher mean), "geodesic_l1" (the geodesic median).
 MeanMethod: TypeAlias = Literal["chordal", "geodesic", "geodesic_l1"]
+"""How a rotation average is taken: ``"chordal"`` (the rotation nearest to the arithmetic mean of the
+matrices, scipy's ``Rotation.mean``), ``"geodesic"`` (the Karcher mean), ``"geodesic_l1"`` (the
+geodesic median)."""

@@ -1,5 +1,5 @@
 """diffquat on NumPy: the reference backend (no autograd). Same names and semantics as
-:mod:`diffquat.torch` and :mod:`diffquat.jax`; see :mod:`diffquat` for the conventions."""
+``diffquat.torch`` and ``diffquat.jax``; the conventions are on the documentation's Conventions page."""
 
 from __future__ import annotations
 

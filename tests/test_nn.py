@@ -297,17 +297,18 @@ def test_jax_heads_train_inside_flax_and_equinox_models(framework: str, represen
 
 
 def _readme_autocast_step() -> str:
-    """The README's autocast training step (the python block that follows its mention of autocast)."""
+    """The documented autocast training step (docs/api/torch.md: the python block that follows its
+    mention of autocast)."""
     from pathlib import Path
 
-    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    text = (Path(__file__).resolve().parents[1] / "docs" / "api" / "torch.md").read_text()
     start = text.index("```python", text.index("A training step under `torch.autocast`"))
     return text[start + len("```python") : text.index("```", start + 1)]
 
 
 @pytest.mark.parametrize("representation", tnn.REPRESENTATIONS)
 def test_readme_autocast_training_step_runs_with_every_head(representation: str) -> None:
-    """The README's ``torch.autocast(bfloat16)`` step, as written there, for each head: the head
+    """The documented ``torch.autocast(bfloat16)`` step, as written there, for each head: the head
     returns the autocast dtype (bfloat16, computed in float32 inside), the loss of bfloat16 and float32
     matrices promotes to float32 (it raised TypeError before), and the step leaves every parameter
     finite, with finite gradients, and moved."""
@@ -319,7 +320,7 @@ def test_readme_autocast_training_step_runs_with_every_head(representation: str)
 
     # Run the block up to the optimizer step, keep copies of the parameters, then step.
     head, tail = code.split("optimizer.step()")
-    exec(head, scope)  # the README's own code
+    exec(head, scope)  # the documentation's own code
     params = [*scope["backbone"].parameters(), *scope["head"].parameters()]
     before = [p.detach().clone() for p in params]
     exec("optimizer.step()" + tail, scope)

@@ -1,9 +1,10 @@
-"""diffquat on JAX. Same names and semantics as :mod:`diffquat.numpy` and :mod:`diffquat.torch`;
-see :mod:`diffquat` for the conventions. Every function is traceable by ``jit``, ``vmap``, ``grad``
-and ``jacfwd``/``jacrev``, runs under ``shard_map``, ``pmap`` and sharded ``jit``, and exports with
-``jax.export`` (the exported program is plain StableHLO: it runs where diffquat is not installed).
+"""diffquat on JAX. Same names and semantics as ``diffquat.numpy`` and ``diffquat.torch``; the
+conventions are on the documentation's Conventions page. Every function is traceable by ``jit``,
+``vmap``, ``grad`` and ``jacfwd``/``jacrev``, runs under ``shard_map``, ``pmap`` and sharded ``jit``,
+and exports with ``jax.export`` (the exported program is plain StableHLO: it runs where diffquat is
+not installed).
 
-One switch of its own, :func:`cpu_kernels` (off by default): ``matrix_to_quaternion`` and
+One switch of its own, ``cpu_kernels`` (off by default): ``matrix_to_quaternion`` and
 ``matrix_to_axis_angle`` on the CPU through diffquat's C kernels, called as XLA custom calls."""
 
 from __future__ import annotations

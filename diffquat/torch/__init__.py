@@ -1,5 +1,5 @@
-"""diffquat on PyTorch. Same names and semantics as :mod:`diffquat.numpy` and :mod:`diffquat.jax`;
-see :mod:`diffquat` for the conventions. Dtype and device of the input are preserved."""
+"""diffquat on PyTorch. Same names and semantics as ``diffquat.numpy`` and ``diffquat.jax``;
+the conventions are on the documentation's Conventions page. Dtype and device of the input are preserved."""
 
 from __future__ import annotations
 

@@ -64,7 +64,9 @@ class RotationHead(nn.Module):
     Args:
         in_features: size of the last dimension of the input features.
         representation: one of ``REPRESENTATIONS``.
-        bias, device, dtype: as for ``torch.nn.Linear``.
+        bias: whether the linear layer has a bias, as for ``torch.nn.Linear``.
+        device: the device of the parameters, as for ``torch.nn.Linear``.
+        dtype: the dtype of the parameters, as for ``torch.nn.Linear``.
 
     Shapes: ``(..., in_features)`` in, rotation matrices ``(..., 3, 3)`` out (column-vector convention).
 

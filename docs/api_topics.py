@@ -1,0 +1,107 @@
+"""The topics of the API reference: every public name of every public module in exactly one topic.
+
+The API pages are generated from each module's ``__all__`` (docs/hooks.py), so a new public function
+appears without editing a page; where it appears is decided here. Adding a public name to any public
+module (or a new public module) makes ``mkdocs build`` and ``tests/test_docs.py`` fail until the name
+is placed in one topic below: that is the intended workflow. A new topic is one more entry (the
+order here is the order on the pages); a name that two modules share (``representation_to_matrix``
+in ``diffquat.torch.nn`` and ``diffquat.jax.nn``) is placed once.
+"""
+
+from __future__ import annotations
+
+import importlib
+import pkgutil
+from types import ModuleType
+
+TOPICS: dict[str, list[str]] = {
+    "Quaternions and rotation matrices": [
+        "quaternion_to_matrix",
+        "matrix_to_quaternion",
+        "standardize_quaternion",
+        "normalize_quaternion",
+        "wxyz_to_xyzw",
+        "xyzw_to_wxyz",
+        "random_quaternions",
+    ],
+    "Rotation vectors (axis-angle)": [
+        "axis_angle_to_quaternion",
+        "quaternion_to_axis_angle",
+        "axis_angle_to_matrix",
+        "matrix_to_axis_angle",
+    ],
+    "Euler angles": [
+        "euler_angles_to_matrix",
+        "matrix_to_euler_angles",
+        "euler_angles_to_quaternion",
+        "quaternion_to_euler_angles",
+    ],
+    "Quaternion algebra and interpolation": [
+        "quaternion_multiply",
+        "quaternion_conjugate",
+        "quaternion_invert",
+        "quaternion_apply",
+        "quaternion_slerp",
+    ],
+    "Distances": ["quaternion_geodesic_distance", "matrix_geodesic_distance"],
+    "Representations for networks (6D, 9D, 10D)": [
+        "rotation_6d_to_matrix",
+        "matrix_to_rotation_6d",
+        "special_procrustes",
+        "symmetric_matrix_to_quaternion",
+    ],
+    "Fitting": ["fit_rotation"],
+    "Rotation heads": [
+        "RotationHead",
+        "representation_to_matrix",
+        "representation_size",
+        "REPRESENTATIONS",
+        "init_rotation_head",
+        "rotation_head",
+    ],
+    "Backend switches": ["cpu_kernels"],
+    "Types": ["EulerConvention", "Representation", "Rotation6DLayout"],
+    "Version": ["__version__"],
+}
+
+
+def public_modules() -> list[ModuleType]:
+    """Every public module of diffquat: none of the parts of its dotted name private."""
+    import diffquat
+
+    names = ["diffquat"] + [
+        m.name
+        for m in pkgutil.walk_packages(diffquat.__path__, "diffquat.")
+        if not any(part.startswith("_") for part in m.name.split("."))
+    ]
+    return [importlib.import_module(n) for n in names]
+
+
+def topic_of() -> dict[str, str]:
+    """Each name's topic; ``ValueError`` for a name placed twice."""
+    placed: dict[str, str] = {}
+    for topic, names in TOPICS.items():
+        for name in names:
+            if name in placed:
+                raise ValueError(
+                    f"docs/api_topics.py: {name!r} is in two topics, {placed[name]!r} and {topic!r}"
+                )
+            placed[name] = topic
+    return placed
+
+
+def problems() -> list[str]:
+    """What stops the topic map from covering the public API exactly: public names in no topic, and
+    names in a topic that no public module exports. Empty when the map is complete."""
+    placed = topic_of()
+    exported = {(m.__name__, n) for m in public_modules() for n in m.__all__}
+    out = [
+        f"{module}.{name} is in no topic of docs/api_topics.py: add it to one"
+        for module, name in sorted(exported)
+        if name not in placed
+    ]
+    names = {n for _, n in exported}
+    out += [
+        f"docs/api_topics.py lists {n!r}, which no public module exports" for n in placed if n not in names
+    ]
+    return out

@@ -1,0 +1,105 @@
+"""mkdocs hooks (mkdocs.yml): the API pages generated from the public modules, and the files that live
+outside docs/ (the notebooks, the benchmark results) added to the site at their own paths.
+
+An API page holds a marker ``<!-- api diffquat.torch -->``: it becomes the module's docstring, then,
+topic by topic (docs/api_topics.py), one mkdocstrings entry per name of the module's ``__all__``, and
+the same for each of its public submodules (so ``diffquat.torch.nn``, and any submodule added later,
+lands on the torch page). ``<!-- api diffquat shallow -->`` leaves the submodules out. A public name
+in no topic fails the build.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import re
+import shutil
+import sys
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+from mkdocs.plugins import event_priority
+from mkdocs.structure.files import File, Files
+
+ROOT = Path(__file__).resolve().parents[1]
+# Outside docs/, published at the same paths as in the repository (so their relative links hold).
+EXTERNAL = ["notebooks/*.ipynb", "notebooks/figures/*.png", "benchmarks/RESULTS.md", "benchmarks/*.png"]
+MARKER = re.compile(r"<!-- api (?P<module>[\w.]+)(?P<shallow> shallow)? -->")
+
+
+def _topics() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("api_topics", Path(__file__).parent / "api_topics.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["api_topics"] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def on_config(config: Any) -> Any:
+    if str(ROOT) not in sys.path:
+        sys.path.insert(0, str(ROOT))  # the diffquat of this checkout
+    problems = _topics().problems()
+    if problems:
+        raise SystemExit("API topics incomplete:\n  " + "\n  ".join(problems))
+    return config
+
+
+@event_priority(100)  # before mkdocs-jupyter looks for the notebooks among the files
+def on_files(files: Files, config: Any) -> Files:
+    for pattern in EXTERNAL:
+        for path in sorted(ROOT.glob(pattern)):
+            # A file of the repository's root as its source folder (not File.generated: mkdocs-jupyter
+            # reads a notebook's source path from its folder, which a generated file has none of).
+            uri = path.relative_to(ROOT).as_posix()
+            files.append(File(uri, str(ROOT), config["site_dir"], config["use_directory_urls"]))
+    return files
+
+
+def _module_markdown(module: ModuleType, topic_of: dict[str, str], order: list[str]) -> str:
+    name = module.__name__
+    # The backends' functions get their docstrings when the module is imported (each is written once,
+    # in the core), so those modules are read at run time; the top-level module holds type aliases,
+    # which only the source describes (their docstrings), so it is read statically.
+    inspect = "true" if "." in name else "false"
+    options = f"    options:\n      force_inspection: {inspect}\n"
+    parts = [f"## `{name}`\n", f"::: {name}\n{options}      members: false\n      show_root_heading: false\n"]
+    for topic in order:
+        names = [n for n in topic_of if topic_of[n] == topic and n in module.__all__]
+        if not names:
+            continue
+        parts.append(f"### {topic} {{ #{name}--{_slug(topic)} }}\n")
+        parts += [f"::: {name}.{n}\n{options}      heading_level: 4\n" for n in names]
+    return "\n".join(parts)
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-")
+
+
+def api_markdown(module_name: str, shallow: bool) -> str:
+    """The markdown that a marker stands for."""
+    topics = _topics()
+    topic_of, order = topics.topic_of(), list(topics.TOPICS)
+    modules = [m for m in topics.public_modules() if m.__name__ == module_name]
+    if not shallow:
+        modules += [m for m in topics.public_modules() if m.__name__.startswith(module_name + ".")]
+    if not modules:
+        raise SystemExit(f"API marker names {module_name!r}, which is no public module")
+    return "\n".join(_module_markdown(m, topic_of, order) for m in modules)
+
+
+def on_post_build(config: Any) -> None:
+    """A notebook's page lives at ``notebooks/<name>/``, and the notebook links the script it imports
+    by its bare name (``fit_orientation.py``, right beside it in the repository): the script is
+    published beside the page, so that the link holds there too."""
+    for notebook in ROOT.glob("notebooks/*.ipynb"):
+        script = notebook.with_suffix(".py")
+        if script.exists():
+            target = Path(config["site_dir"]) / "notebooks" / notebook.stem / script.name
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(script, target)
+
+
+def on_page_markdown(markdown: str, page: Any, config: Any, files: Files) -> str:
+    return MARKER.sub(lambda m: api_markdown(m.group("module"), bool(m.group("shallow"))), markdown)
