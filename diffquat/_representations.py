@@ -191,12 +191,12 @@ def _procrustes_solve(xp: Any, rotation: Any, matrix: Any, x: Any) -> Any:
 
 
 def procrustes_tangent(xp: Any, matrix: Any, rotation: Any, tangent: Any) -> Any:
-    """Forward-mode derivative of :func:`special_procrustes`: dR for dM = ``tangent``."""
+    """Forward-mode derivative of ``special_procrustes``: dR for dM = ``tangent``."""
     return _procrustes_solve(xp, rotation, matrix, tangent)
 
 
 def procrustes_cotangent(xp: Any, matrix: Any, rotation: Any, cotangent: Any) -> Any:
-    """Reverse-mode derivative of :func:`special_procrustes`: dL/dM for dL/dR = ``cotangent``.
+    """Reverse-mode derivative of ``special_procrustes``: dL/dM for dL/dR = ``cotangent``.
 
     The linear map dM -> dR is self-adjoint up to the map dM -> R^T dM, so the same solve serves
     (see :func:`_procrustes_solve`)."""
@@ -361,9 +361,9 @@ def fit_rotation(
 
     Returns:
         Shape ``(..., 3, 3)``: the rotation R that minimises ``sum_i w_i |R s_i - t_i|^2``, i.e.
-        :func:`special_procrustes` of ``sum_i w_i t_i s_i^T`` (determinant fixed: never a reflection).
+        ``special_procrustes`` of ``sum_i w_i t_i s_i^T`` (determinant fixed: never a reflection).
         scipy's equivalent is ``Rotation.align_vectors(target, source, weights)`` (note the order).
-        Its gradients are those of :func:`special_procrustes`.
+        Its gradients are those of ``special_procrustes``.
     """
     # The backend has checked that N is the same in every argument (diffquat._backend).
     n = source.shape[-2]

@@ -2,7 +2,7 @@
 
 A type checker then catches a misspelt representation or Euler convention where the call is written
 (and an editor offers the choices); at run time a wrong string still raises ``ValueError`` naming the
-function. The public aliases are exported by :mod:`diffquat` (which imports neither torch nor jax).
+function. The public aliases are exported by ``diffquat`` (which imports neither torch nor jax).
 A new string option of a public function gets its alias here, and the test that compares each alias
 with the values the code accepts (``tests/test_api.py``).
 """

@@ -10,10 +10,12 @@ in no topic fails the build.
 
 from __future__ import annotations
 
+import ast
 import importlib.util
 import re
 import shutil
 import sys
+import typing
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -58,19 +60,42 @@ def on_files(files: Files, config: Any) -> Files:
 
 def _module_markdown(module: ModuleType, topic_of: dict[str, str], order: list[str]) -> str:
     name = module.__name__
-    # The backends' functions get their docstrings when the module is imported (each is written once,
-    # in the core), so those modules are read at run time; the top-level module holds type aliases,
-    # which only the source describes (their docstrings), so it is read statically.
-    inspect = "true" if "." in name else "false"
-    options = f"    options:\n      force_inspection: {inspect}\n"
-    parts = [f"## `{name}`\n", f"::: {name}\n{options}      members: false\n      show_root_heading: false\n"]
+    parts = [
+        f"## `{name}`\n",
+        f"::: {name}\n    options:\n      members: false\n      show_root_heading: false\n"
+        "      show_root_toc_entry: false\n",
+    ]
     for topic in order:
         names = [n for n in topic_of if topic_of[n] == topic and n in module.__all__]
         if not names:
             continue
         parts.append(f"### {topic} {{ #{name}--{_slug(topic)} }}\n")
-        parts += [f"::: {name}.{n}\n{options}      heading_level: 4\n" for n in names]
+        for n in names:
+            if typing.get_origin(getattr(module, n)) is typing.Literal:
+                parts.append(_literal_markdown(name, n, getattr(module, n)))
+            else:
+                parts.append(f"::: {name}.{n}\n    options:\n      heading_level: 4\n")
     return "\n".join(parts)
+
+
+def _literal_markdown(module: str, name: str, alias: Any) -> str:
+    """A ``Literal`` type alias: its values, and the docstring that follows it in diffquat/_types.py
+    (mkdocstrings reads objects at run time here, where an alias has no docstring of its own)."""
+    values = ", ".join(f'`"{v}"`' for v in typing.get_args(alias))
+    return f"#### `{name}` {{ #{module}.{name} }}\n\n`Literal` of {values}.\n\n{_alias_docs()[name]}\n"
+
+
+def _alias_docs() -> dict[str, str]:
+    """The string that follows each assignment in diffquat/_types.py (an attribute docstring), with
+    its reStructuredText literals as markdown code."""
+    tree = ast.parse((ROOT / "diffquat" / "_types.py").read_text())
+    docs = {}
+    for node, after in zip(tree.body, tree.body[1:], strict=False):
+        if not (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)):
+            continue
+        if isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant):
+            docs[node.target.id] = " ".join(str(after.value.value).split()).replace("``", "`")
+    return docs
 
 
 def _slug(text: str) -> str:

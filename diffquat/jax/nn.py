@@ -12,7 +12,7 @@ that optax, ``jax.jit``, ``vmap`` and sharding take as it is)::
     R = dqnn.rotation_head(params, features, "6d")  # (..., 3, 3)
     loss = dq.matrix_geodesic_distance(R, R_true).mean()
 
-The representations and maps are those of :mod:`diffquat.torch.nn` (written once, in the core).
+The representations and maps are those of ``diffquat.torch.nn`` (written once, in the core).
 """
 
 from __future__ import annotations
