@@ -218,6 +218,11 @@ class Op:
     relative: errors are measured relative to the largest entry of each expected output element (for
         ops whose output scales with the norm of the input, e.g. ``quaternion_invert`` at 1e20).
     periodic: the outputs are angles, compared modulo 2 pi (an angle of pi may come back as -pi).
+    variant_of: the label of the row this one is a keyword variant of, whose code path it shares but
+        for a static choice (the 6D layout: the axis the result is stacked on). Values, properties,
+        errors, per-case gradients, captures and exports run on it; the compile-heavy checks of the
+        derivatives (jax ``check_grads``, ``torch.compile``, compiled forward mode, jit/vmap/grad:
+        tens of seconds per row) run on the base row only (``base_rows``).
     """
 
     name: str
@@ -240,6 +245,7 @@ class Op:
     to_scalar_last: Callable[[np.ndarray], np.ndarray] = lambda x: x[..., [1, 2, 3, 0]]
     relative: bool = False
     periodic: bool = False
+    variant_of: str = ""
 
     @property
     def id(self) -> str:
@@ -456,6 +462,7 @@ OPS = [
         kwargs={"layout": "rows"},
         label="rotation_6d_to_matrix[rows]",
         applies=lambda case: case.name in LAYOUT_CASES,
+        variant_of="rotation_6d_to_matrix",
     ),
     Op(
         "matrix_to_rotation_6d",
@@ -467,6 +474,7 @@ OPS = [
         kwargs={"layout": "rows"},
         label="matrix_to_rotation_6d[rows]",
         applies=lambda case: case.name in LAYOUT_CASES,
+        variant_of="matrix_to_rotation_6d",
     ),
     # Three rows: all singular values equal (|q| R: where a library SVD backward divides by zero),
     # det < 0, and rank 2. Each is smooth, so gradients must match finite differences there too.
@@ -851,6 +859,8 @@ gradients = only(backend=lambda b: b in ("torch", "jax"), dtype=lambda d: d == G
 torch_only = only(backend=lambda b: b == "torch")
 jax_only = only(backend=lambda b: b == "jax")
 edge_cases = only(case=lambda c: c.name in EDGE_CASES)
+# The compile-heavy derivative checks: on every row but the keyword variants (see Op.variant_of).
+base_rows = only(op=lambda op: not op.variant_of)
 # Where the op is differentiable (e.g. not where a rotation vector jumps at pi): for the numerical
 # derivative checks (gradcheck, check_grads), which cannot pass across a jump.
 smooth = only(pair=lambda op, case: op.smooth_at(case))

@@ -13,7 +13,7 @@ from types import ModuleType
 
 import numpy as np
 import pytest
-from cases import NOT_IN_TABLE, OPS, Op, only, uniform_quaternions
+from cases import NOT_IN_TABLE, OPS, OPS_BY_NAME, Op, only, uniform_quaternions
 from conftest import BACKENDS, Backend
 
 import diffquat.numpy  # noqa: F401  (importing a backend registers every op's shapes)
@@ -63,6 +63,9 @@ def test_backend_exports_the_same_names_and_signatures_as_numpy(name: str) -> No
 def test_every_public_function_is_in_the_test_table() -> None:
     exported = set(public("numpy"))
     assert exported == {op.name for op in OPS} | set(NOT_IN_TABLE)
+    # a keyword variant names its base row, a row of the same function
+    variants = [op for op in OPS if op.variant_of]
+    assert all(OPS_BY_NAME[op.variant_of].name == op.name for op in variants) and variants
 
 
 def test_every_public_function_is_documented_with_its_shapes(backend: Backend) -> None:

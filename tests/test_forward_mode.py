@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import torch
 import torch.autograd.forward_ad as fwAD
-from cases import CASES_BY_NAME, EDGE_CASES, Op, gradients, jax_only, torch_only
+from cases import CASES_BY_NAME, EDGE_CASES, Op, base_rows, gradients, jax_only, torch_only
 from conftest import Backend
 
 import diffquat.jax.nn as jnn
@@ -147,6 +147,7 @@ def test_torch_forward_mode_matches_reverse_mode_and_finite_differences(
 
 @torch_only
 @gradients
+@base_rows
 def test_torch_compiled_forward_mode_equals_eager(op: Op, backend: Backend, dtype: str) -> None:
     """Under ``torch.compile(fullgraph=True)``: ``jvp`` on all the edge cases and a dense ``jacfwd`` on
     one element of each, in one compiled function, equal to eager (the first test proves eager right).
@@ -181,6 +182,7 @@ def test_torch_compiled_forward_mode_equals_eager(op: Op, backend: Backend, dtyp
 
 @jax_only
 @gradients
+@base_rows
 def test_jax_forward_mode_matches_reverse_mode_and_finite_differences(
     op: Op, backend: Backend, dtype: str
 ) -> None:

@@ -17,6 +17,7 @@ from cases import (
     EDGE_CASES,
     Case,
     Op,
+    base_rows,
     edge_cases,
     gradients,
     jax_only,
@@ -175,6 +176,7 @@ def test_torch_gradcheck_and_gradgradcheck(op: Op, backend: Backend, dtype: str,
 
 @jax_only
 @gradients
+@base_rows
 def test_jax_check_grads(op: Op, backend: Backend, dtype: str) -> None:
     """``check_grads`` to second order, forward and reverse, at every edge case where the op is smooth,
     all in one batch (each element is checked on its own: the ops are row by row, and check_grads

@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import torch
-from cases import CASES_BY_NAME, Op, gradients, jax_only, torch_only
+from cases import CASES_BY_NAME, Op, base_rows, gradients, jax_only, torch_only
 from conftest import Backend
 
 # Two cases, a generic batch and the exact half-turns (the branchiest inputs for every op), as one
@@ -62,6 +62,7 @@ def close_derivatives(a: Any, b: Any, smooth: np.ndarray) -> None:
 
 @torch_only
 @gradients
+@base_rows
 def test_torch_compile_fullgraph_forward_and_backward(op: Op, backend: Backend, dtype: str) -> None:
     fn = op.gradient_function(backend.module)
     xs, smooth, _ = setup(op)
@@ -122,6 +123,7 @@ def test_torch_func_vmap_grad_jacrev(op: Op, backend: Backend, dtype: str) -> No
 
 @jax_only
 @gradients
+@base_rows
 def test_jax_jit_vmap_grad(op: Op, backend: Backend, dtype: str) -> None:
     fn = op.gradient_function(backend.module)
     xs, smooth, w = setup(op)
