@@ -77,8 +77,9 @@ def quaternion_multiply(xp: Any, p: Any, q: Any, *, scalar_first: bool = True) -
     """Hamilton product ``p q`` (i*i = j*j = k*k = ijk = -1), no sign standardisation.
 
     Args:
-        p, q: quaternions, shape ``(..., 4)`` each, batch dimensions broadcast against each other.
-            Any norm: the product's norm is ``|p| |q|``.
+        p: the left factor, quaternions of shape ``(..., 4)``, any norm (the product's norm is
+            ``|p| |q|``).
+        q: the right factor, shape ``(..., 4)``; its batch dimensions broadcast against ``p``'s.
         scalar_first: storage order of ``p``, ``q`` and of the result.
 
     Returns:
@@ -263,7 +264,9 @@ def quaternion_slerp(xp: Any, p: Any, q: Any, t: Any, *, scalar_first: bool = Tr
     """Spherical linear interpolation from ``p`` (t = 0) to ``q`` (t = 1) along the shortest arc.
 
     Args:
-        p, q: quaternions, shape ``(..., 4)``, any non-zero norm (the zero quaternion is the identity).
+        p: the start, quaternions of shape ``(..., 4)``, any non-zero norm (the zero quaternion is the
+            identity).
+        q: the end, the same.
         t: interpolation parameters, shape ``(...)`` (no trailing axis: one ``t`` per rotation), or a
             Python number (weak in the promotion: a float32 pair stays float32); the batch shapes of
             ``p``, ``q`` and ``t`` broadcast against each other.
@@ -293,8 +296,8 @@ def quaternion_geodesic_distance(xp: Any, p: Any, q: Any, *, scalar_first: bool 
     """Angle of the rotation between ``p`` and ``q``, in [0, pi], blind to the sign of either.
 
     Args:
-        p, q: quaternions, shape ``(..., 4)`` each (batch dimensions broadcast), any non-zero norm; the
-            zero quaternion is the identity.
+        p: quaternions, shape ``(..., 4)``, any non-zero norm; the zero quaternion is the identity.
+        q: the same; its batch dimensions broadcast against ``p``'s.
         scalar_first: storage order of ``p`` and ``q``.
 
     Returns:
@@ -314,7 +317,9 @@ def matrix_geodesic_distance(xp: Any, matrix1: Any, matrix2: Any) -> Any:
     """Angle of the rotation ``matrix1^T matrix2`` between two rotation matrices, in [0, pi].
 
     Args:
-        matrix1, matrix2: rotation matrices, shape ``(..., 3, 3)`` each (batch dimensions broadcast).
+        matrix1: rotation matrices, shape ``(..., 3, 3)``.
+        matrix2: rotation matrices, shape ``(..., 3, 3)``; batch dimensions broadcast against
+            ``matrix1``'s.
 
     Returns:
         Shape ``(...)``: ``atan2(|axial(M - M^T)| / 2, (trace(M) - 1) / 2)`` with ``M = matrix1^T matrix2``:

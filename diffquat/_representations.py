@@ -356,7 +356,9 @@ def fit_rotation(
     """The rotation that best maps the points ``source`` onto ``target`` (Wahba's problem, Kabsch).
 
     Args:
-        source, target: shape ``(..., N, 3)``, leading dimensions broadcast against each other.
+        source: points, shape ``(..., N, 3)``.
+        target: the points they should map onto, shape ``(..., N, 3)``; leading dimensions broadcast
+            against ``source``'s.
         weights: shape ``(..., N)``, non-negative, or ``None`` for all ones.
 
     Returns:
