@@ -157,7 +157,43 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
     metafunc.parametrize(argnames, combos, ids=ids, indirect=["backend"])
 
 
-_CASE_ROWS: dict[tuple[str, str, str], dict[str, list[np.ndarray]]] = {}
+_ROWS: dict[tuple[Any, ...], dict[str, list[np.ndarray]]] = {}
+
+
+def rows_by_case(
+    key: tuple[Any, ...],
+    case: Any,
+    batch_of: Callable[[Any], tuple[int, ...]],
+    inputs: Callable[[Any], list[np.ndarray]],
+    compute: Callable[[list[np.ndarray], tuple[int, ...]], list[np.ndarray]],
+    applies: Callable[[Any], bool] = lambda case: True,
+) -> list[np.ndarray]:
+    """``compute(xs, batch)`` at ``case``: its outputs, arrays whose leading dimensions are ``batch``.
+
+    Every case but the batch_* ones (and those ``applies`` rejects) is computed in one call, its
+    inputs flattened to one batch dimension and concatenated, and the outputs are cached per ``key``
+    and sliced per case. Rows are independent (a NaN row leaves the others alone:
+    tests/test_values.py), so each row is the result at that row, while the compiled programs and
+    the calls are one per op, not thirteen (eager jax compiles each primitive for every new shape, and
+    the per-case calls made the per-case tests a compiler benchmark). The batch_* cases, whose point
+    is the batch shape, are computed alone at their own shapes."""
+    if case.name.startswith("batch_"):
+        return compute(inputs(case), batch_of(case))
+    if key not in _ROWS:
+        cases = [c for c in CASES if not c.name.startswith("batch_") and applies(c)]
+        batches = [batch_of(c) for c in cases]
+        flat = [
+            [x.reshape(-1, *x.shape[len(batch) :]) for x in inputs(c)]
+            for c, batch in zip(cases, batches, strict=True)
+        ]
+        concatenated = [np.concatenate(p) for p in zip(*flat, strict=True)]
+        outs = compute(concatenated, (len(concatenated[0]),))
+        _ROWS[key], start = {}, 0
+        for c, batch in zip(cases, batches, strict=True):
+            rows = slice(start, start + int(np.prod(batch)))
+            start = rows.stop
+            _ROWS[key][c.name] = [o[rows].reshape(*batch, *o.shape[1:]) for o in outs]
+    return _ROWS[key][case.name]
 
 
 def case_rows(
@@ -170,31 +206,15 @@ def case_rows(
 ) -> list[np.ndarray]:
     """``fn`` on the backend arrays of ``inputs(case)`` (float64 arrays of the case's batch shape, cast
     to ``dtype``): its outputs (an array or a tuple of arrays of the same batch shape) as float64.
+    On jax from one call over all cases (:func:`rows_by_case`, ``key`` one per test); numpy and torch,
+    which compile nothing, evaluate each case as it is."""
 
-    On jax, every case but the batch_* ones is evaluated in one call, flattened and concatenated, and
-    cached per ``key`` (one per test) and dtype: eager jax compiles each primitive for every new shape,
-    and thirteen case shapes made the per-case tests a compiler benchmark. Rows are independent (a NaN
-    row leaves the others alone: tests/test_values.py), so each row is the value at that row; the
-    batch_* cases, whose point is the batch shape, are evaluated at their own shapes."""
-
-    def call(xs: list[np.ndarray]) -> list[np.ndarray]:
+    def call(xs: list[np.ndarray], batch: tuple[int, ...] | None = None) -> list[np.ndarray]:
         out = fn(*(backend.array(x, dtype) for x in xs))
         return [backend.to_numpy(o) for o in (out if isinstance(out, tuple) else (out,))]
 
-    if backend.name != "jax" or case.name.startswith("batch_"):
+    if backend.name != "jax":
         return call(inputs(case))
-    cache = (key, backend.name, dtype)
-    if cache not in _CASE_ROWS:
-        cases = [c for c in CASES if not c.name.startswith("batch_")]
-        batches = [c.quaternions(dtype).shape[:-1] for c in cases]
-        flat = [
-            [x.reshape(-1, *x.shape[len(batch) :]) for x in inputs(c)]
-            for c, batch in zip(cases, batches, strict=True)
-        ]
-        outs = call([np.concatenate(p) for p in zip(*flat, strict=True)])
-        _CASE_ROWS[cache], start = {}, 0
-        for c, batch in zip(cases, batches, strict=True):
-            rows = slice(start, start + int(np.prod(batch)))
-            start = rows.stop
-            _CASE_ROWS[cache][c.name] = [o[rows].reshape(*batch, *o.shape[1:]) for o in outs]
-    return _CASE_ROWS[cache][case.name]
+    return rows_by_case(
+        (key, backend.name, dtype), case, lambda c: c.quaternions(dtype).shape[:-1], inputs, call
+    )

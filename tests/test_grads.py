@@ -27,7 +27,7 @@ from cases import (
     smooth,
     torch_only,
 )
-from conftest import BACKENDS, Backend
+from conftest import BACKENDS, Backend, rows_by_case
 from jax.test_util import check_grads
 
 Fn = Callable[..., Any]
@@ -38,6 +38,26 @@ def batch_shape(case: Case) -> tuple[int, ...]:
 
 
 Batch = tuple[int, ...]
+
+
+_REVERSE: dict[tuple[Fn, int], Fn] = {}
+
+
+def _jax_reverse_rows(fn: Fn, nb: int) -> Fn:
+    """``xs -> `` the pullbacks of every one-hot cotangent (one per output component, in every batch
+    element at once), as one compiled program per function and batch rank: ``vmap`` of the pullback,
+    where a pullback called eagerly per component compiled a transposed program beside the
+    linearised one."""
+    if (fn, nb) not in _REVERSE:
+
+        def rows(*xs: Any) -> Any:
+            out, pullback = jax.vjp(fn, *xs)
+            n_out = int(np.prod(out.shape[nb:]))
+            one_hot = jnp.eye(n_out, dtype=out.dtype).reshape(n_out, *([1] * nb), *out.shape[nb:])
+            return jax.vmap(pullback)(jnp.broadcast_to(one_hot, (n_out, *out.shape)))
+
+        _REVERSE[(fn, nb)] = jax.jit(rows)
+    return _REVERSE[(fn, nb)]
 
 
 def reverse_jacobians(backend: Backend, fn: Fn, xs: list[np.ndarray], batch: Batch) -> list[np.ndarray]:
@@ -52,14 +72,8 @@ def reverse_jacobians(backend: Backend, fn: Fn, xs: list[np.ndarray], batch: Bat
         rows = [torch.autograd.grad(flat[..., o].sum(), ts, retain_graph=True) for o in range(flat.shape[-1])]
         per_input = [[r[i].detach().numpy() for r in rows] for i in range(len(xs))]
     else:
-        out, pullback = jax.vjp(fn, *[jnp.asarray(x) for x in xs])
-        n_out = int(np.prod(out.shape[nb:]))
-        rows = []
-        for o in range(n_out):
-            cot = np.zeros((*batch, n_out))
-            cot[..., o] = 1.0
-            rows.append(pullback(jnp.asarray(cot.reshape(out.shape))))
-        per_input = [[np.asarray(r[i]) for r in rows] for i in range(len(xs))]
+        grads = _jax_reverse_rows(fn, nb)(*[jnp.asarray(x) for x in xs])
+        per_input = [list(np.asarray(g)) for g in grads]
     n_in = [int(np.prod(x.shape[nb:])) for x in xs]
     return [
         np.stack([g.reshape(*batch, n) for g in rows_i], axis=-2)
@@ -99,51 +113,54 @@ def fd_jacobians(backend: Backend, fn: Fn, xs: list[np.ndarray], batch: Batch) -
 _JITTED: dict[str, Fn] = {}
 
 
-def jitted(op: Op) -> Fn:
-    """The op's gradient function under ``jax.jit``, one per op for the session: jax caches a compiled
-    program (and those of its ``vjp``) per function and input shape, so every later case at a shape
-    seen before compiles nothing."""
+def gradient_function(op: Op, backend: Backend) -> Fn:
+    """The op's gradient function on ``backend``; on jax under ``jax.jit``, as users run it, and so
+    that hundreds of finite-difference calls stay quick: one per op for the session, since jax caches
+    a compiled program (and those of its ``vjp``) per function and input shape."""
+    if backend.name == "torch":
+        return op.gradient_function(backend.module)
     if op.id not in _JITTED:
-        _JITTED[op.id] = jax.jit(op.gradient_function(BACKENDS["jax"].module))
+        _JITTED[op.id] = jax.jit(op.gradient_function(backend.module))
     return _JITTED[op.id]
 
 
-# The number of elements every non-batch case is tiled to for jax (the largest, near_half_turns, has 288).
-TILE = 512
-
-
-def tiled(xs: list[np.ndarray], batch: Batch, n: int) -> tuple[list[np.ndarray], Batch]:
-    """The inputs with their batch flattened to one dimension of ``n`` elements, the case's elements
-    repeated in order, so that cases of different batch shapes are one shape to the compiler. Every
-    element is still differentiated at its own point; the batch_* cases, whose point is the batch
-    shape (the empty one included), are not tiled (see grad_setup)."""
-    size = int(np.prod(batch))
-    return [np.resize(x.reshape(size, *x.shape[len(batch) :]), (n, *x.shape[len(batch) :])) for x in xs], (n,)
-
-
-def grad_setup(op: Op, backend: Backend, case: Case) -> tuple[Fn, list[np.ndarray], tuple[int, ...]]:
-    """The op's gradient function on ``backend`` and the case's float64 inputs. jax: compiled, as users
-    run it, and so that hundreds of finite-difference calls stay quick; every case but the batch_* ones
-    tiled to ``TILE`` elements, so that the op and its pullback compile for one shape (and the batch_*
-    cases' own), not thirteen: compiling was nine tenths of these tests' time."""
-    xs, batch = list(op.gradient_inputs(case.quaternions("float64"))), batch_shape(case)
-    if backend.name == "torch":
-        return op.gradient_function(backend.module), xs, batch
-    if case.name.startswith("batch_"):  # the batch shape is what these cases test: kept as it is
-        return jitted(op), xs, batch
-    assert int(np.prod(batch)) <= TILE, f"case {case.name} is larger than TILE"
-    xs, batch = tiled(xs, batch, TILE)
-    return jitted(op), xs, batch
+def by_case(
+    test: str, op: Op, backend: Backend, case: Case, compute: Callable[[Fn, list[np.ndarray], Batch], Any]
+) -> list[np.ndarray]:
+    """``compute(fn, xs, batch)`` on the op's float64 gradient inputs at ``case``: from one call over
+    every case the op applies to (``conftest.rows_by_case``: the op and its pullback compile for one
+    shape, and the finite differences take one evaluation per input component for all cases, not one
+    per case), the batch_* cases at their own shapes."""
+    fn = gradient_function(op, backend)
+    return rows_by_case(
+        (test, op.id, backend.name),
+        case,
+        batch_shape,
+        lambda c: list(op.gradient_inputs(c.quaternions("float64"))),
+        lambda xs, batch: [*xs, *compute(fn, xs, batch)],
+        applies=op.applies,
+    )
 
 
 @gradients
 def test_gradient_matches_finite_differences(op: Op, backend: Backend, dtype: str, case: Case) -> None:
-    fn, xs, batch = grad_setup(op, backend, case)
-    ad = reverse_jacobians(backend, fn, xs, batch)
+    n = len(op.gradient_inputs(case.quaternions("float64")))
+    arrays = by_case(
+        "finite differences",
+        op,
+        backend,
+        case,
+        lambda fn, xs, batch: [
+            *reverse_jacobians(backend, fn, xs, batch),
+            *fd_jacobians(backend, fn, xs, batch),
+        ],
+    )
+    xs, ad, fd = arrays[:n], arrays[n : 2 * n], arrays[2 * n :]
+    batch = batch_shape(case)
     assert all(np.all(np.isfinite(j)) for j in ad)
     if not op.smooth_at(case):
         return  # e.g. the zero quaternion: no derivative exists, finiteness is the promise
-    for x, j_ad, j_fd in zip(xs, ad, fd_jacobians(backend, fn, xs, batch), strict=True):
+    for x, j_ad, j_fd in zip(xs, ad, fd, strict=True):
         norm = np.linalg.norm(x.reshape(*batch, j_ad.shape[-1]), axis=-1)[..., None, None]
         scale = np.where(norm > 0, norm, 1.0)
         tol = 1e-6 * np.maximum(np.abs(j_fd).max(axis=(-1, -2), keepdims=True), 1 / scale)
@@ -213,15 +230,20 @@ def test_torch_and_jax_gradients_agree(op: Op, backend: Backend, dtype: str, cas
     gradient points along a vector that is pure rounding (the axis of a rotation by 1e-16), so two
     correct implementations legitimately differ there; that it is finite is tested at every case
     (test_gradient_matches_finite_differences, test_gradient_is_finite_in_every_dtype)."""
-    fn_jax, xs, _ = grad_setup(op, backend, case)
-    fn_torch = op.gradient_function(BACKENDS["torch"].module)
-    out_shape = np.shape(fn_jax(*[jnp.asarray(x) for x in xs]))
-    cot = np.random.default_rng(0).normal(size=out_shape)
-    _, pullback = jax.vjp(fn_jax, *[jnp.asarray(x) for x in xs])
-    g_jax = [np.asarray(g) for g in pullback(jnp.asarray(cot))]
-    ts = [torch.tensor(x, requires_grad=True) for x in xs]
-    g_torch = [g.numpy() for g in torch.autograd.grad(fn_torch(*ts), ts, torch.tensor(cot))]
-    for a, b in zip(g_torch, g_jax, strict=True):
+    fn_torch = gradient_function(op, BACKENDS["torch"])
+
+    def pullbacks(fn_jax: Fn, xs: list[np.ndarray], batch: Batch) -> list[np.ndarray]:
+        out_shape = np.shape(fn_jax(*[jnp.asarray(x) for x in xs]))
+        cot = np.random.default_rng(0).normal(size=out_shape)
+        _, pullback = jax.vjp(fn_jax, *[jnp.asarray(x) for x in xs])
+        g_jax = [np.asarray(g) for g in pullback(jnp.asarray(cot))]
+        ts = [torch.tensor(x, requires_grad=True) for x in xs]
+        g_torch = [g.numpy() for g in torch.autograd.grad(fn_torch(*ts), ts, torch.tensor(cot))]
+        return [*g_torch, *g_jax]
+
+    n = len(op.gradient_inputs(case.quaternions("float64")))
+    grads = by_case("torch and jax", op, backend, case, pullbacks)[n:]
+    for a, b in zip(grads[:n], grads[n:], strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * max(1.0, float(np.abs(b).max(initial=0))))
 
 
