@@ -51,9 +51,9 @@ from ._algebra import (
 )
 from ._core import (
     Conversion,
-    _unit_components,
     join_quaternion,
     matrix_to_quaternion,
+    nonfinite_by_arithmetic,
     op,
     quaternion_to_matrix,
     split_quaternion,
@@ -259,7 +259,8 @@ _INVERSE_DOC = """
 """
 _ACCURACY_DOC = """
     Args:
-        omega: rotation vectors, shape ``(..., 3)``, any length.
+        omega: rotation vectors, shape ``(..., 3)``, any length. A NaN or an infinity makes the whole
+            matrix NaN (through ``|w|^2``, which every entry reads).
 
     Returns:
         Shape ``(..., 3, 3)``. The coefficients are Taylor series below ``|w| = 1`` and closed forms in
@@ -268,24 +269,28 @@ _ACCURACY_DOC = """
 """
 
 
+@nonfinite_by_arithmetic
 @op(omega=(3,))
 def so3_left_jacobian(xp: Any, omega: Any) -> Any:
     p, q, r = _jacobian_coefficients(xp, omega)
     return _assemble(xp, omega, p, q, r)
 
 
+@nonfinite_by_arithmetic
 @op(omega=(3,))
 def so3_right_jacobian(xp: Any, omega: Any) -> Any:
     p, q, r = _jacobian_coefficients(xp, omega)
     return _assemble(xp, omega, p, -q, r)
 
 
+@nonfinite_by_arithmetic
 @op(omega=(3,))
 def so3_left_jacobian_inverse(xp: Any, omega: Any) -> Any:
     p, r = _inverse_coefficients(xp, omega)
     return _assemble(xp, omega, p, -0.5, r)
 
 
+@nonfinite_by_arithmetic
 @op(omega=(3,))
 def so3_right_jacobian_inverse(xp: Any, omega: Any) -> Any:
     p, r = _inverse_coefficients(xp, omega)
@@ -366,12 +371,15 @@ def so3_minus(
 
 
 def _unit(xp: Any, q: Any, scalar_first: bool) -> tuple[Any, Any, Any, Any]:
-    """Components (w, x, y, z) of ``q / |q|``, the zero quaternion read as the identity. Scaled by the
-    largest component before the norm is taken (``_core._unit_components``), so that no derivative
-    meets a power of ``1 / |q|^2`` (which overflows float32 at small norms)."""
+    """Components (w, x, y, z) of ``q / |q|``, the zero quaternion read as the identity. Divided by
+    the largest component before the norm is taken (as ``_core._unit_components`` does), so that no
+    derivative meets a power of ``1 / |q|^2``, which overflows float32 at small norms; that component
+    is at least ``|q| / 2 > 0`` once the zero quaternion is the identity."""
     w, x, y, z = nonzero_or_identity(xp, *split_quaternion(q, scalar_first))
-    w, x, y, z, _ = _unit_components(xp, join_quaternion(xp, w, x, y, z, True), True)
-    return w, x, y, z
+    big = xp.maximum(xp.maximum(xp.abs(w), xp.abs(x)), xp.maximum(xp.abs(y), xp.abs(z)))
+    w, x, y, z = w / big, x / big, y / big, z / big
+    inv = 1.0 / xp.sqrt(w * w + x * x + y * y + z * z)
+    return w * inv, x * inv, y * inv, z * inv
 
 
 @op(q=(4,), delta=(3,))
