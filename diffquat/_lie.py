@@ -36,7 +36,6 @@ accurate to a few ulps, and the first and second derivatives with them.
 
 from __future__ import annotations
 
-import functools
 import math
 from typing import Any
 
@@ -170,11 +169,11 @@ _B_SERIES = tuple((-1) ** k / math.factorial(2 * k + 3) for k in range(12))
 _C_SERIES = tuple(b / math.factorial(2 * k + 2) for k, b in enumerate(_BERNOULLI))
 
 
-@functools.cache
 def _truncated(coefficients: tuple[float, ...], eps: float) -> tuple[float, ...]:
     """The shortest head of a Taylor series in u whose first omitted term at ``u = SERIES_BELOW`` is
     below a quarter of an ulp (``eps / 4``) of its leading term: float32 takes 5 terms of each series
-    here, float64 8 (t - sin t), 9 (1 - cos t) and 11 (the inverse's)."""
+    here, float64 8 (t - sin t), 9 (1 - cos t) and 11 (the inverse's). Not cached: a dozen
+    comparisons of Python numbers, and Dynamo warns of ``functools.cache``."""
     for n in range(2, len(coefficients)):
         if abs(coefficients[n]) * SERIES_BELOW**n <= 0.25 * eps * abs(coefficients[0]):
             return coefficients[:n]
