@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import scipy.linalg
 from scipy.spatial.transform import Rotation, Slerp
 
 DTYPES = ("float64", "float32", "float16", "bfloat16")
@@ -820,6 +821,170 @@ OPS += [
         smooth_at=_except(*AT_DISTANCE_KINKS),
     ),
 ]
+
+# ---------------------------------------------------------------------------------------------------
+# SO(3) as a Lie group (diffquat._lie). Rotation vectors come from the case quaternion (``_rotvec``), so
+# that every row reaches 0, 1e-4 ... 1e-10, pi - 1e-1 ... pi - 1e-8 and exactly pi about the 26 axes.
+# Each function with a ``side`` has one row, on the left (the keyword given); the right side, the
+# default, is checked in tests/test_lie.py (values, identities and derivatives).
+
+
+def hat(v: np.ndarray) -> np.ndarray:
+    """The skew matrix of each vector, written out: hat(v) u = v x u."""
+    x, y, z = np.moveaxis(np.asarray(v, dtype=np.float64), -1, 0)
+    zero = np.zeros_like(x)
+    rows = [np.stack(r, axis=-1) for r in ([zero, -z, y], [z, zero, -x], [-y, x, zero])]
+    return np.stack(rows, axis=-2)
+
+
+def oracle_so3_vee(m: np.ndarray) -> np.ndarray:
+    skew = 0.5 * (m - np.swapaxes(m, -1, -2))
+    return np.stack([skew[..., 2, 1], skew[..., 0, 2], skew[..., 1, 0]], axis=-1)
+
+
+def oracle_left_jacobian(v: np.ndarray) -> np.ndarray:
+    """J_l(v) = sum_k hat(v)^k / (k + 1)!, by scipy's matrix exponential (Pade, scaling and squaring)
+    of the block matrix [[hat(v), I], [0, 0]], whose upper right block is that sum: independent of the
+    closed form and its series."""
+    flat, batch = _flat(v, 1)
+    block = np.zeros((len(flat), 6, 6))
+    block[:, :3, :3] = hat(flat)
+    block[:, :3, 3:] = np.eye(3)
+    out = scipy.linalg.expm(block)[:, :3, 3:] if len(flat) else np.zeros((0, 3, 3))
+    return out.reshape((*batch, 3, 3))
+
+
+def oracle_right_jacobian(v: np.ndarray) -> np.ndarray:
+    return oracle_left_jacobian(-v)
+
+
+def oracle_left_jacobian_inverse(v: np.ndarray) -> np.ndarray:
+    # J_l is well conditioned for |v| <= pi (singular values 1 and 2 sin(t/2) / t >= 2 / pi)
+    return np.linalg.inv(oracle_left_jacobian(v))
+
+
+def oracle_right_jacobian_inverse(v: np.ndarray) -> np.ndarray:
+    return np.linalg.inv(oracle_right_jacobian(v))
+
+
+def _companion_matrix(q: np.ndarray) -> np.ndarray:
+    return oracle_quaternion_to_matrix(_companion(q, seed=11))
+
+
+def _so3_plus_inputs(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    return _companion_matrix(q), _rotvec(q)[0]
+
+
+def oracle_so3_plus_left(m: np.ndarray, v: np.ndarray) -> np.ndarray:
+    return oracle_axis_angle_to_matrix(v) @ m
+
+
+def _so3_minus_left_inputs(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    """(R(q p), R(p)): R1 R2^T is R(q), the case's own rotation (half-turns apart, equal, ...)."""
+    p = _companion(q, seed=11)
+    return oracle_quaternion_to_matrix(hamilton(q, p)), oracle_quaternion_to_matrix(p)
+
+
+def oracle_so3_minus_left(m1: np.ndarray, m2: np.ndarray) -> np.ndarray:
+    return oracle_matrix_to_axis_angle(m1 @ np.swapaxes(m2, -1, -2))
+
+
+def _quaternion_plus_inputs(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    """(|q| p, rotation vector of q): the norms case reaches the quaternion argument, the zero case
+    gives the zero quaternion (the identity)."""
+    return _companion(q, seed=11) * _norm(q), _rotvec(q)[0]
+
+
+def oracle_quaternion_plus_left(p: np.ndarray, v: np.ndarray) -> np.ndarray:
+    # scipy's exponential (w = cos(t/2) >= 0 for t <= pi, as diffquat's), its normalisation of p (the
+    # zero quaternion as the identity: _rotation), and the Hamilton product written out: the sign of
+    # the product, which diffquat keeps.
+    unit = _batched(lambda r: r.as_quat(scalar_first=True), p, (4,))
+    return hamilton(oracle_axis_angle_to_quaternion(v), unit)
+
+
+def _quaternion_minus_left_inputs(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    p = _companion(q, seed=11)
+    return hamilton(q, p), p
+
+
+def oracle_quaternion_minus_left(q1: np.ndarray, q2: np.ndarray) -> np.ndarray:
+    r1, r2 = _rotation(q1)[0], _rotation(q2)[0]
+    relative = (r1 * r2.inv()).as_quat(scalar_first=True) if q1.size else np.zeros(q1.shape)
+    return oracle_quaternion_to_axis_angle(relative.reshape(q1.shape))
+
+
+def _lie_ops() -> list[Op]:
+    def vectors(name: str, inputs: Callable[..., Any], oracle: Callable[..., np.ndarray], **kw: Any) -> Op:
+        return Op(name, inputs, oracle, quaternion_args=(), output="other", scalar_first=False, **kw)
+
+    left = {"side": "left"}
+    return [
+        vectors("so3_hat", lambda q: (_rotvec(q)[0] * _norm(q),), hat, relative=True),
+        # Absolute errors: near half-turns the skew part (sin t) is tiny beside the matrix entries.
+        vectors("so3_vee", _matrix, oracle_so3_vee),
+        Op(
+            "so3_exp",
+            _rotvec,
+            oracle_axis_angle_to_matrix,
+            quaternion_args=(),
+            output="matrix",
+            scalar_first=False,
+        ),
+        # As matrix_to_axis_angle: v or -v at exact half-turns, where log jumps.
+        vectors(
+            "so3_log",
+            _matrix,
+            oracle_matrix_to_axis_angle,
+            up_to_sign=True,
+            smooth_at=_except(*AT_HALF_TURNS),
+        ),
+        vectors("so3_left_jacobian", _rotvec, oracle_left_jacobian),
+        vectors("so3_right_jacobian", _rotvec, oracle_right_jacobian),
+        vectors("so3_left_jacobian_inverse", _rotvec, oracle_left_jacobian_inverse),
+        vectors("so3_right_jacobian_inverse", _rotvec, oracle_right_jacobian_inverse),
+        Op(
+            "so3_plus",
+            _so3_plus_inputs,
+            oracle_so3_plus_left,
+            quaternion_args=(),
+            output="matrix",
+            scalar_first=False,
+            kwargs=left,
+            label="so3_plus[left]",
+        ),
+        vectors(
+            "so3_minus",
+            _so3_minus_left_inputs,
+            oracle_so3_minus_left,
+            kwargs=left,
+            label="so3_minus[left]",
+            up_to_sign=True,
+            smooth_at=_except(*AT_HALF_TURNS),
+        ),
+        Op(
+            "quaternion_plus",
+            _quaternion_plus_inputs,
+            oracle_quaternion_plus_left,
+            unit=True,
+            kwargs=left,
+            label="quaternion_plus[left]",
+        ),
+        Op(
+            "quaternion_minus",
+            _quaternion_minus_left_inputs,
+            oracle_quaternion_minus_left,
+            quaternion_args=(0, 1),
+            output="other",
+            kwargs=left,
+            label="quaternion_minus[left]",
+            up_to_sign=True,
+            smooth_at=_except(*AT_HALF_TURNS),
+        ),
+    ]
+
+
+OPS += _lie_ops()
 
 OPS_BY_NAME = {op.id: op for op in OPS}
 

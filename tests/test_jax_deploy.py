@@ -34,9 +34,10 @@ from jax.sharding import PartitionSpec as P
 
 import diffquat.jax as dq
 
-# The functions whose CPU program the switch changes (the quaternion step of matrix_to_axis_angle is
-# matrix_to_quaternion's); test_the_switch_decides_the_cpu_program checks this against every row.
-KERNEL_OPS = frozenset({"matrix_to_quaternion", "matrix_to_axis_angle"})
+# The functions whose CPU program the switch changes (the quaternion step of matrix_to_axis_angle, and
+# of so3_log, its map under its Lie name, is matrix_to_quaternion's); test_the_switch_decides_the_cpu_program
+# checks this against every row.
+KERNEL_OPS = frozenset({"matrix_to_quaternion", "matrix_to_axis_angle", "so3_log"})
 CASE = CASES_BY_NAME["random"]  # 64 rotations
 SYMBOLIC_CALL = 7  # the batch size a symbolic artefact is called at: one that no export saw
 AXIS = "batch"

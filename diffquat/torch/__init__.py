@@ -6,19 +6,21 @@ from __future__ import annotations
 import contextlib
 import functools
 import warnings
-from typing import Any
+from typing import Any, Literal
 
 import torch
 from torch import Tensor
 from torch.jit._trace import TracerWarning, is_tracing
 
-from .. import _algebra, _core, _euler
+from .. import _algebra, _core, _euler, _lie
 from .. import _representations as _rep
 from .._backend import Backend, documented, shape_tuple
 from .._public import public_dir as _public_dir
 from .._types import EulerConvention, Rotation6DLayout
 from . import _dispatch
 from ._custom import custom_derivative
+
+_Side = Literal["right", "left"]  # the side of a perturbation (diffquat._lie)
 
 __all__ = [
     "axis_angle_to_matrix",
@@ -36,13 +38,25 @@ __all__ = [
     "quaternion_conjugate",
     "quaternion_geodesic_distance",
     "quaternion_invert",
+    "quaternion_minus",
     "quaternion_multiply",
+    "quaternion_plus",
     "quaternion_slerp",
     "quaternion_to_axis_angle",
     "quaternion_to_euler_angles",
     "quaternion_to_matrix",
     "random_quaternions",
     "rotation_6d_to_matrix",
+    "so3_exp",
+    "so3_hat",
+    "so3_left_jacobian",
+    "so3_left_jacobian_inverse",
+    "so3_log",
+    "so3_minus",
+    "so3_plus",
+    "so3_right_jacobian",
+    "so3_right_jacobian_inverse",
+    "so3_vee",
     "special_procrustes",
     "standardize_quaternion",
     "symmetric_matrix_to_quaternion",
@@ -296,6 +310,69 @@ def quaternion_geodesic_distance(p: Tensor, q: Tensor, *, scalar_first: bool = T
 @documented(_algebra.matrix_geodesic_distance)
 def matrix_geodesic_distance(matrix1: Tensor, matrix2: Tensor) -> Tensor:
     return _B(_algebra.matrix_geodesic_distance, matrix1, matrix2)
+
+
+# SO(3) as a Lie group: hat and vee, exp and log, Jacobians, plus and minus (diffquat._lie).
+
+
+@documented(_lie.so3_hat)
+def so3_hat(omega: Tensor) -> Tensor:
+    return _B(_lie.so3_hat, omega)
+
+
+@documented(_lie.so3_left_jacobian)
+def so3_left_jacobian(omega: Tensor) -> Tensor:
+    return _B(_lie.so3_left_jacobian, omega)
+
+
+@documented(_lie.so3_right_jacobian)
+def so3_right_jacobian(omega: Tensor) -> Tensor:
+    return _B(_lie.so3_right_jacobian, omega)
+
+
+@documented(_lie.so3_left_jacobian_inverse)
+def so3_left_jacobian_inverse(omega: Tensor) -> Tensor:
+    return _B(_lie.so3_left_jacobian_inverse, omega)
+
+
+@documented(_lie.so3_right_jacobian_inverse)
+def so3_right_jacobian_inverse(omega: Tensor) -> Tensor:
+    return _B(_lie.so3_right_jacobian_inverse, omega)
+
+
+@documented(_lie.so3_vee)
+def so3_vee(matrix: Tensor) -> Tensor:
+    return _B(_lie.so3_vee, matrix)
+
+
+@documented(_lie.so3_exp)
+def so3_exp(omega: Tensor) -> Tensor:
+    return _B(_lie.so3_exp, omega, to_matrix=_quaternion_to_matrix)
+
+
+@documented(_lie.so3_log)
+def so3_log(matrix: Tensor) -> Tensor:
+    return _B(_lie.so3_log, matrix, to_quaternion=_matrix_to_quaternion)
+
+
+@documented(_lie.so3_plus)
+def so3_plus(matrix: Tensor, delta: Tensor, *, side: _Side = "right") -> Tensor:
+    return _B(_lie.so3_plus, matrix, delta, side=side, to_matrix=_quaternion_to_matrix)
+
+
+@documented(_lie.so3_minus)
+def so3_minus(matrix1: Tensor, matrix2: Tensor, *, side: _Side = "right") -> Tensor:
+    return _B(_lie.so3_minus, matrix1, matrix2, side=side, to_quaternion=_matrix_to_quaternion)
+
+
+@documented(_lie.quaternion_plus)
+def quaternion_plus(q: Tensor, delta: Tensor, *, side: _Side = "right", scalar_first: bool = True) -> Tensor:
+    return _B(_lie.quaternion_plus, q, delta, side=side, scalar_first=scalar_first)
+
+
+@documented(_lie.quaternion_minus)
+def quaternion_minus(q1: Tensor, q2: Tensor, *, side: _Side = "right", scalar_first: bool = True) -> Tensor:
+    return _B(_lie.quaternion_minus, q1, q2, side=side, scalar_first=scalar_first)
 
 
 def random_quaternions(
