@@ -377,8 +377,8 @@ def so3_minus(
     ``log(R1 R2^T)`` (``side="left"``), angle in [0, pi].
 
     Args:
-        matrix1, matrix2: rotation matrices ``R1``, ``R2``, shape ``(..., 3, 3)`` each (batch shapes
-            broadcast).
+        matrix1: rotation matrices ``R1``, shape ``(..., 3, 3)``.
+        matrix2: rotation matrices ``R2``, shape ``(..., 3, 3)``; the batch shapes broadcast.
         side: ``"right"`` (the default) or ``"left"``, as in ``so3_plus``; anything else raises
             ``ValueError``.
 
@@ -438,9 +438,9 @@ def quaternion_minus(xp: Any, q1: Any, q2: Any, *, side: str = "right", scalar_f
     ``log(q1 q2*)`` (``side="left"``), angle in [0, pi]; the value of ``so3_minus`` on the rotations.
 
     Args:
-        q1, q2: quaternions, shape ``(..., 4)`` each (batch shapes broadcast), any non-zero norm; the
-            zero quaternion is the identity. Blind to the sign of either: ``q`` and ``-q`` are one
-            rotation.
+        q1: quaternions, shape ``(..., 4)``, any non-zero norm; the zero quaternion is the identity.
+            Blind to the sign: ``q`` and ``-q`` are one rotation.
+        q2: quaternions, shape ``(..., 4)``, as ``q1``; the batch shapes broadcast.
         side: ``"right"`` (the default) or ``"left"``; anything else raises ``ValueError``.
         scalar_first: storage order of ``q1`` and ``q2``.
 

@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -12,9 +12,7 @@ from . import _algebra, _core, _euler, _lie
 from . import _representations as _rep
 from ._backend import Backend, documented, shape_tuple
 from ._public import public_dir as _public_dir
-from ._types import EulerConvention, Rotation6DLayout
-
-_Side = Literal["right", "left"]  # the side of a perturbation (diffquat._lie)
+from ._types import EulerConvention, Rotation6DLayout, Side
 
 __all__ = [
     "axis_angle_to_matrix",
@@ -296,25 +294,25 @@ def so3_log(matrix: ArrayLike) -> NDArray[Any]:
 
 
 @documented(_lie.so3_plus)
-def so3_plus(matrix: ArrayLike, delta: ArrayLike, *, side: _Side = "right") -> NDArray[Any]:
+def so3_plus(matrix: ArrayLike, delta: ArrayLike, *, side: Side = "right") -> NDArray[Any]:
     return _B(_lie.so3_plus, matrix, delta, side=side)
 
 
 @documented(_lie.so3_minus)
-def so3_minus(matrix1: ArrayLike, matrix2: ArrayLike, *, side: _Side = "right") -> NDArray[Any]:
+def so3_minus(matrix1: ArrayLike, matrix2: ArrayLike, *, side: Side = "right") -> NDArray[Any]:
     return _B(_lie.so3_minus, matrix1, matrix2, side=side)
 
 
 @documented(_lie.quaternion_plus)
 def quaternion_plus(
-    q: ArrayLike, delta: ArrayLike, *, side: _Side = "right", scalar_first: bool = True
+    q: ArrayLike, delta: ArrayLike, *, side: Side = "right", scalar_first: bool = True
 ) -> NDArray[Any]:
     return _B(_lie.quaternion_plus, q, delta, side=side, scalar_first=scalar_first)
 
 
 @documented(_lie.quaternion_minus)
 def quaternion_minus(
-    q1: ArrayLike, q2: ArrayLike, *, side: _Side = "right", scalar_first: bool = True
+    q1: ArrayLike, q2: ArrayLike, *, side: Side = "right", scalar_first: bool = True
 ) -> NDArray[Any]:
     return _B(_lie.quaternion_minus, q1, q2, side=side, scalar_first=scalar_first)
 

@@ -74,7 +74,7 @@ TOPICS: dict[str, list[str]] = {
         "rotation_head",
     ],
     "Backend switches": ["cpu_kernels"],
-    "Types": ["EulerConvention", "Representation", "Rotation6DLayout"],
+    "Types": ["EulerConvention", "Representation", "Rotation6DLayout", "Side"],
     "Version": ["__version__"],
 }
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import warnings
-from typing import Any, Literal
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -16,11 +16,9 @@ from .. import _algebra, _core, _euler, _lie
 from .. import _representations as _rep
 from .._backend import Backend, documented, shape_tuple
 from .._public import public_dir as _public_dir
-from .._types import EulerConvention, Rotation6DLayout
+from .._types import EulerConvention, Rotation6DLayout, Side
 from . import _dispatch
 from ._custom import custom_derivative
-
-_Side = Literal["right", "left"]  # the side of a perturbation (diffquat._lie)
 
 __all__ = [
     "axis_angle_to_matrix",
@@ -356,22 +354,22 @@ def so3_log(matrix: Tensor) -> Tensor:
 
 
 @documented(_lie.so3_plus)
-def so3_plus(matrix: Tensor, delta: Tensor, *, side: _Side = "right") -> Tensor:
+def so3_plus(matrix: Tensor, delta: Tensor, *, side: Side = "right") -> Tensor:
     return _B(_lie.so3_plus, matrix, delta, side=side, to_matrix=_quaternion_to_matrix)
 
 
 @documented(_lie.so3_minus)
-def so3_minus(matrix1: Tensor, matrix2: Tensor, *, side: _Side = "right") -> Tensor:
+def so3_minus(matrix1: Tensor, matrix2: Tensor, *, side: Side = "right") -> Tensor:
     return _B(_lie.so3_minus, matrix1, matrix2, side=side, to_quaternion=_matrix_to_quaternion)
 
 
 @documented(_lie.quaternion_plus)
-def quaternion_plus(q: Tensor, delta: Tensor, *, side: _Side = "right", scalar_first: bool = True) -> Tensor:
+def quaternion_plus(q: Tensor, delta: Tensor, *, side: Side = "right", scalar_first: bool = True) -> Tensor:
     return _B(_lie.quaternion_plus, q, delta, side=side, scalar_first=scalar_first)
 
 
 @documented(_lie.quaternion_minus)
-def quaternion_minus(q1: Tensor, q2: Tensor, *, side: _Side = "right", scalar_first: bool = True) -> Tensor:
+def quaternion_minus(q1: Tensor, q2: Tensor, *, side: Side = "right", scalar_first: bool = True) -> Tensor:
     return _B(_lie.quaternion_minus, q1, q2, side=side, scalar_first=scalar_first)
 
 
