@@ -143,7 +143,7 @@ def test_retraction_is_so3_plus_and_quaternion_plus(dtype: type) -> None:
     around the series' threshold, small, large, and beyond pi."""
     rng = np.random.default_rng(10)
     # around t = eps^(1/4), the switch to the series: 1.2e-4 in float64, 1.9e-2 in float32
-    lengths = np.array([0.0, 1e-9, 1e-4, 1.2e-4, 1.3e-4, 1e-3, 0.018, 0.019, 0.5, 2.0, np.pi - 1e-6, 4.0, 7.0, 30.0])
+    lengths = np.array([0, 1e-9, 1e-4, 1.2e-4, 1.3e-4, 1e-3, 0.018, 0.019, 0.5, 2, np.pi - 1e-6, 4, 7, 30])
     axes = rng.normal(size=(len(lengths), 3))
     delta = (axes / np.linalg.norm(axes, axis=-1, keepdims=True)) * lengths[:, None]
     R, q = rotations(len(lengths)), unit_quaternions(len(lengths))
@@ -234,9 +234,9 @@ DECAY = {"adam": 0.98, "adam-amsgrad": 1.0, "sgd-momentum": 0.98, "sgd-nesterov"
 def test_torch_optimizers_converge_to_the_closed_form(name: str) -> None:
     """A batch of Wahba problems, each started 170 degrees away, as matrices and as quaternions (in
     one optimizer), with a learning rate decaying to 3e-4 times its start (AMSGrad: constant): every
-    one ends within 1e-3 degrees of the closed-form optimum. (Adam with beta2 = 0.999 remembers the large gradients far
-    from the optimum for a thousand steps, and its steps near it are tiny: 0.4 degrees away after 400
-    steps; beta2 = 0.9 forgets them.)"""
+    one ends within 1e-3 degrees of the closed-form optimum. (Adam with beta2 = 0.999 remembers the
+    large gradients far from the optimum for a thousand steps, and its steps near it are tiny: 0.4
+    degrees away after 400 steps; beta2 = 0.9 forgets them.)"""
     points, targets, optimum = wahba_problem(8)
     start = far_start(optimum)
     R = torch.nn.Parameter(torch.tensor(start))
@@ -519,7 +519,8 @@ def test_jax_refusals() -> None:
         jo.riemannian_adam(0.1).init(params)
     with pytest.raises(ValueError, match=r"needs the params"):
         jo.project_to_tangent().update({"R": params["R"]}, optax.EmptyState())
-    with pytest.raises(ValueError, match=r"update \['R'\] has shape \(3, 3\); expected tangent vectors \(3,\)"):
+    expected = r"update \['R'\] has shape \(3, 3\); expected tangent vectors \(3,\)"
+    with pytest.raises(ValueError, match=expected):
         transformation = jo.scale_by_riemannian_adam()
         transformation.update({"R": params["R"]}, transformation.init({"R": params["R"]}))
     with pytest.raises(

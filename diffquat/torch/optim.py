@@ -31,10 +31,11 @@ rotation vectors ``w`` ``(..., 3)``, the direction of ``R exp(w)``, and ``|w|`` 
 derivative of ``w -> f(R exp(w))`` at 0, ``vee(R^T G - G^T R)`` for matrices and ``vec(q* G) / 2`` for
 quaternions (the conjugate, then the Hamilton product's vector part); the moments are tangent vectors
 at the current rotation, carried to the next by parallel transport (``v -> exp(-d / 2) v`` for a step
-``d``); and the step is the exponential map, ``R exp(d)`` / ``q exp(d)``, computed through the
-quaternion, so a parameter stays orthonormal to a few ulps (float32: ``|R^T R - I| < 1e-6`` after
-1e4 steps, tested) and a quaternion unit. A quaternion's sign is whatever the product gives (both
-signs are the same rotation).
+``d``); and the step is the exponential map, ``R exp(d)`` / ``q exp(d)`` (the values of ``so3_plus``
+and ``quaternion_plus``), computed through the quaternion and normalised, so a parameter stays
+orthonormal to a few ulps, however many steps it takes (float32: ``|R^T R - I| <= 1e-5`` after 1e4
+steps, tested; 1e-6 measured, where ``R @ exp(d)`` alone drifted to 2e-5) and a quaternion unit. A
+quaternion's sign is whatever the product gives (both signs are the same rotation).
 
 **Weight decay** (an L2 penalty on the entries) means nothing on a rotation: ``|R|_F^2 = 3`` and
 ``|q| = 1`` are constant on the manifold, so its gradient has no tangent part. A ``"so3"`` group with
