@@ -176,9 +176,15 @@ class Trace:
         self.seconds.append(elapsed)
         self.final = np.array(rotations)  # a copy: a torch parameter's numpy() is a view
 
-    def time_to(self, target: float) -> float | None:
-        """Seconds until the error first reaches ``target`` (None if it never does)."""
-        return next((s for e, s in zip(self.error, self.seconds, strict=True) if e <= target), None)
+    def first_within(self, optimum: float, fraction: float) -> int | None:
+        """The first step whose error is within ``fraction`` of the optimum's (None: none is)."""
+        return next((k for k, e in enumerate(self.error) if abs(e - optimum) <= fraction * optimum), None)
+
+    def time_to(self, optimum: float, fraction: float) -> float | None:
+        """Seconds of steps until the error is first within ``fraction`` of the optimum's (None:
+        never)."""
+        k = self.first_within(optimum, fraction)
+        return None if k is None else self.seconds[k]
 
 
 def torch_cost(problem: Problem) -> Callable[[Any], Any]:
@@ -463,11 +469,12 @@ def jax_riemannian_adam(problem: Problem, steps: int, lr: float, lr_decay: float
 
 @dataclass(frozen=True)
 class Settings:
-    """Sizes and step counts, and the learning rate of each Adam: its best of 0.005, 0.01, 0.02, 0.04
-    and 0.08 on the full problem (by the time to come within 0.1% of the optimum's error), decayed
-    exponentially to ``lr_decay`` times its start over ``steps``. geoopt's Cayley step turns a
-    rotation by ``2 atan(lr |d|)``, twice ours for small steps: its 0.02 is our 0.04, and it takes
-    exactly our steps there."""
+    """Sizes and step counts, and the learning rate of each Adam, decayed exponentially to
+    ``lr_decay`` times its start over ``steps``: each Adam's best, by the steps it took to come within
+    0.1% of the optimum's error on the full problem, over 0.005, 0.01, 0.02, 0.03, 0.04, 0.06, 0.08
+    and 0.16 (raw Adam: 0.02, 50 steps; RiemannianAdam: 0.03, 51 steps; the others 52 to 114 or not
+    reached). geoopt's Cayley step turns a rotation by ``2 atan(lr |d|)``, about twice ours: at half
+    our learning rate it takes our steps, and 0.015 was its best too (its 0.03: 52 steps)."""
 
     n: int
     steps: int
@@ -475,11 +482,11 @@ class Settings:
     pypose_n: int  # pypose's dense Levenberg-Marquardt runs on a problem of this size
     pypose_iterations: int
     degree: int = 10
-    lr: dict[str, float] = field(default_factory=lambda: {"adam": 0.02, "riemannian": 0.04, "geoopt": 0.02})
+    lr: dict[str, float] = field(default_factory=lambda: {"adam": 0.02, "riemannian": 0.03, "geoopt": 0.015})
     lr_decay: float = 0.01
 
 
-FULL = Settings(n=1000, steps=200, lm_iterations=12, pypose_n=200, pypose_iterations=6)
+FULL = Settings(n=1000, steps=200, lm_iterations=12, pypose_n=200, pypose_iterations=8)
 SMALL = Settings(n=100, steps=60, lm_iterations=8, pypose_n=40, pypose_iterations=3)
 
 ADAM = "Adam, raw quaternions"
@@ -545,12 +552,14 @@ def run(settings: Settings | None = None, verbose: bool = True) -> dict[str, Any
     setup()
     problem = make_problem(n=settings.n, degree=settings.degree)
     say(describe(problem))
+    best_error = optimum(problem).error[-1]
+    say(f"the optimum (Levenberg-Marquardt, 40 iterations) is {best_error:.4f} deg from the truth")
     traces = solve_all(problem, solvers(settings), say)
-    rows = table(traces)
+    rows = table(traces, best_error)
     say(render(rows))
-    path = plot(traces, figure_dir() / "orientation_on_manifold.png", problem)
+    path = plot(traces, best_error, figure_dir() / "orientation_on_manifold.png", problem)
     say(f"\nfigure saved to {os.path.relpath(path)}")
-    return {"problem": problem, "traces": traces, "rows": rows, "figure": path}
+    return {"problem": problem, "traces": traces, "rows": rows, "figure": path, "optimum": best_error}
 
 
 def run_pypose(settings: Settings | None = None, verbose: bool = True) -> dict[str, Any]:
@@ -566,22 +575,23 @@ def run_pypose(settings: Settings | None = None, verbose: bool = True) -> dict[s
         LM: lambda p: levenberg_marquardt(p, settings.pypose_iterations),
         PYPOSE: lambda p: pypose_lm(p, settings.pypose_iterations),
     }
+    best_error = optimum(problem).error[-1]
     traces = solve_all(problem, methods, say)
-    rows = table(traces)
+    rows = table(traces, best_error)
     say(render(rows))
-    return {"problem": problem, "traces": traces, "rows": rows}
+    return {"problem": problem, "traces": traces, "rows": rows, "optimum": best_error}
 
 
-def targets(traces: dict[str, Trace]) -> tuple[float, float]:
-    """The error of the optimum (Levenberg-Marquardt's last iterate: converged), and the cost there."""
-    reference = traces[LM]
-    return reference.error[-1], reference.cost[-1]
+def optimum(problem: Problem, iterations: int = 40) -> Trace:
+    """The reference optimum: Levenberg-Marquardt run to convergence (40 iterations; it converges
+    quadratically and stops moving after about 15). Its last error is the one every method is
+    measured against."""
+    return levenberg_marquardt(problem, iterations, label="optimum")
 
 
-def table(traces: dict[str, Trace]) -> list[dict[str, Any]]:
+def table(traces: dict[str, Trace], best_error: float) -> list[dict[str, Any]]:
     """Per method: steps, final error and cost, time per step, and the time to come within 1% and
-    0.1% of the optimum's error."""
-    best_error, _ = targets(traces)
+    0.1% of the optimum's error ``best_error``."""
     rows = []
     for label, trace in traces.items():
         if trace.skipped:
@@ -595,8 +605,8 @@ def table(traces: dict[str, Trace]) -> list[dict[str, Any]]:
                 "final error (deg)": trace.error[-1],
                 "final cost": trace.cost[-1],
                 "ms per step": 1e3 * trace.seconds[-1] / max(steps, 1),
-                "s to 1%": trace.time_to(1.01 * best_error),
-                "s to 0.1%": trace.time_to(1.001 * best_error),
+                "s to 1%": trace.time_to(best_error, 0.01),
+                "s to 0.1%": trace.time_to(best_error, 0.001),
             }
         )
     return rows
@@ -632,29 +642,36 @@ STYLE = {
 }
 
 
-def plot(traces: dict[str, Trace], path: Path, problem: Problem) -> Path:
-    """Error to the truth against step (left) and against seconds (right), every method on both,
-    with the optimum's error dotted. Saved as a small PNG."""
+def plot(traces: dict[str, Trace], best_error: float, path: Path, problem: Problem) -> Path:
+    """Each method's mean error to the truth minus the optimum's, against the step (left) and against
+    time (right), the 1% and 0.1% targets dotted. The error axis is logarithmic down to 1e-4 degrees
+    and linear below (``symlog``), so that an error that crosses the optimum's (it can: the optimum
+    minimises the cost, not the error) crosses zero smoothly. Saved as a small PNG."""
     from matplotlib.figure import Figure
 
-    best_error, _ = targets(traces)
     fig = Figure(figsize=(12, 4), dpi=80, layout="constrained")
     by_step, by_time = fig.subplots(1, 2, sharey=True)
     for label, trace in traces.items():
         if trace.skipped:
             continue
         style = STYLE.get(label, {})
-        by_step.plot(np.arange(len(trace.error)), trace.error, label=label, **style)
-        # The start at a small positive time: the time axis is logarithmic.
-        seconds = np.maximum(trace.seconds, 1e-3)
-        by_time.plot(seconds, trace.error, label=label, **style)
+        excess = np.array(trace.error) - best_error
+        # The start drawn at step 1 and at 1 ms: the step and time axes are logarithmic.
+        by_step.plot(np.maximum(np.arange(len(excess)), 1), excess, label=label, **style)
+        by_time.plot(np.maximum(trace.seconds, 1e-3), excess, label=label, **style)
     for ax in (by_step, by_time):
-        ax.axhline(best_error, color="grey", lw=0.8, ls=":")
-        ax.set(yscale="log", ylabel="mean angle to the truth (deg)")
-    by_step.set(xlabel="step (iteration for LM)", xscale="symlog")
-    by_time.set(xlabel="seconds (1 CPU thread)", xscale="log")
-    by_step.set_title(f"{problem.n} rotations, {len(problem.edges)} edges, 10% outliers, Cauchy loss")
-    by_time.set_title("error against time (dotted: the optimum's error)")
+        for fraction in (0.01, 0.001):
+            ax.axhline(fraction * best_error, color="grey", lw=0.8, ls=":")
+        ax.axhline(0.0, color="grey", lw=0.8)
+        ax.set(xscale="log", ylabel="mean error - the optimum's (deg)")
+        ax.set_yscale("symlog", linthresh=1e-4)
+        ax.set_ylim(-0.01 * best_error, None)  # below the optimum's error: to 1% of it
+    by_step.set(xlabel="step (iteration for Levenberg-Marquardt; the start at 1)")
+    by_time.set(xlabel="seconds in the steps (1 CPU thread; the start at 1 ms)")
+    by_step.set_title(
+        f"{problem.n} rotations, {len(problem.edges)} edges: the optimum's error {best_error:.3f} deg"
+    )
+    by_time.set_title("dotted: 1% and 0.1% of the optimum's error")
     by_time.legend(fontsize=8)
     fig.savefig(path)
     return path
