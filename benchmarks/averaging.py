@@ -73,14 +73,11 @@ def end_to_end(
             "final_cost": traces[0].cost[-1],
             "seconds_per_step": statistics.median(t.seconds[-1] / (len(t.error) - 1) for t in traces),
         }
-        for name, factor in TARGETS:
-            times = [t.time_to(factor * reference) for t in traces]
+        for name, fraction in TARGETS:
+            times = [t.time_to(reference, fraction) for t in traces]
             reached = [x for x in times if x is not None]
             entry[f"seconds_to_{name}"] = statistics.median(reached) if len(reached) == len(times) else None
-            errors = traces[0].error
-            entry[f"steps_to_{name}"] = next(
-                (k for k, e in enumerate(errors) if e <= factor * reference), None
-            )
+            entry[f"steps_to_{name}"] = traces[0].first_within(reference, fraction)
         out["methods"][label] = entry
     return out
 

@@ -513,6 +513,24 @@ def test_jax_parameters_stay_rotations_for_ten_thousand_float32_steps() -> None:
     assert np.abs(np.linalg.norm(q, axis=-1) - 1).max() <= 1e-6
 
 
+def test_jax_apply_updates_differentiates_to_the_tangent_gradient() -> None:
+    """Differentiated through ``apply_updates`` (meta-learning does), the derivative of a loss in the
+    update at 0 is the tangent gradient itself (``project_to_tangent`` of the loss's gradient), and
+    it is finite at 0, where ``|delta|`` has no derivative."""
+    rng = np.random.default_rng(11)
+    params = {"R": jnp.asarray(rotations(4)), "q": jnp.asarray(unit_quaternions(4))}
+    weights = {k: jnp.asarray(rng.normal(size=v.shape)) for k, v in params.items()}
+
+    def loss(p: dict[str, jax.Array]) -> jax.Array:
+        return sum(jnp.sum(weights[k] * p[k] ** 3) for k in p)
+
+    zeros = {"R": jnp.zeros((4, 3), jnp.float64), "q": jnp.zeros((4, 3), jnp.float64)}
+    through = jax.grad(lambda u: loss(jo.apply_updates(params, u)))(zeros)
+    projected, _ = jo.project_to_tangent().update(jax.grad(loss)(params), optax.EmptyState(), params)
+    for k in params:
+        np.testing.assert_allclose(np.asarray(through[k]), np.asarray(projected[k]), rtol=1e-12, atol=1e-12)
+
+
 def test_jax_refusals() -> None:
     params = {"R": jnp.eye(3, dtype=jnp.float64), "b": jnp.zeros(5, jnp.float64)}
     with pytest.raises(ValueError, match=r"leaf \['b'\] has shape \(5,\).*multi_transform"):
