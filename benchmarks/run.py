@@ -10,6 +10,12 @@ input and the cotangent read and the input gradient written): each time is also 
 The peers are benchmark-only dependencies (the ``bench`` extra); a missing one is left out and named.
 jax's ``matrix_to_quaternion`` and ``matrix_to_axis_angle`` have two rows, side by side in one run: the
 default (the formula, on every platform) and the C kernels that ``diffquat.jax.cpu_kernels`` turns on.
+
+The Lie functions (``so3_*``, ``quaternion_plus``) are timed against the peers that have them: jaxlie,
+kornia, pypose and theseus' Lie library torchlie (``theseus-ai`` itself builds C++ extensions against
+the installed torch at install time; its SO(3) is torchlie's). The two-argument ``so3_plus`` and
+``quaternion_plus`` take one packed input per call, ``(N, 12)`` (the matrix row-major, then the
+rotation vector) or ``(N, 7)`` (the quaternion, then the rotation vector), split by every method alike.
 """
 
 from __future__ import annotations
@@ -23,7 +29,7 @@ import sys
 import time
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -43,7 +49,14 @@ JAX_KERNELS = "diffquat jax.jit, C kernels (cpu_kernels on)"
 FULL_SIZES = (1, 64, 4096, 262144, 4194304)
 QUICK_SIZES = (1, 64)
 # Floats per rotation of each representation.
-WIDTH = {"quaternion": 4, "matrix": 9, "rotvec": 3}
+WIDTH = {
+    "quaternion": 4,
+    "matrix": 9,
+    "rotvec": 3,
+    "jacobian": 9,
+    "matrix+rotvec": 12,
+    "quaternion+rotvec": 7,
+}
 
 
 @dataclass
@@ -66,6 +79,10 @@ class OpSpec:
     target: str  # output representation
     methods: list[Method]
     skipped: list[str]
+    # float64 input -> the expected float64 output, for the accuracy table (default: the rotation of the
+    # case, in the target representation)
+    reference: Callable[[np.ndarray], np.ndarray] | None = None
+    notes: list[str] = field(default_factory=list)
 
 
 def _xyzw(q: np.ndarray) -> np.ndarray:
@@ -234,14 +251,120 @@ def build_ops(quick: bool, dynamic: bool | None = None) -> list[OpSpec]:
         )
     )  # fmt: skip
 
+    # SO(3) as a Lie group. Each peer's own spelling of the operation; where a peer lacks one, the
+    # reason is recorded (LIE_GAPS).
+    def jaxlie_lie(kind: str) -> Callable[[], Method]:
+        def build() -> Method:
+            import jax.numpy as jnp
+            import jaxlie
+            from jaxlie._so3 import _SO3_jac_left, _SO3_jac_left_inv
+
+            fns: dict[str, Callable[[Any], Any]] = {
+                "exp": lambda v: jaxlie.SO3.exp(v).as_matrix(),
+                "log": lambda m: jaxlie.SO3.from_matrix(m).log(),
+                # private: what jaxlie's SE3 exp uses. Its second argument is returned as J_l below
+                # theta^2 = 1e-5 (jaxlie passes exp(w)); given I here, so that the time is the
+                # Jacobian's alone, as for every other method.
+                "jl": lambda v: _SO3_jac_left(v, jnp.eye(3, dtype=v.dtype)),
+                "jl_inv": _SO3_jac_left_inv,  # private: what jaxlie's SE3 log uses
+                "plus": lambda x: (
+                    jaxlie.SO3.from_matrix(x[:9].reshape(3, 3)) @ jaxlie.SO3.exp(x[9:])
+                ).as_matrix(),
+                "qplus": lambda x: jaxlie.manifold.rplus(jaxlie.SO3(x[:4]), x[4:]).wxyz,
+            }
+            return Method("jaxlie (jit)", "jax", jax.jit(jax.vmap(fns[kind])), compiled=True)
+
+        return build
+
+    def kornia_lie(kind: str) -> Callable[[], Method]:
+        def build() -> Method:
+            from kornia.geometry.liegroup import So3
+            from kornia.geometry.quaternion import Quaternion
+
+            fns: dict[str, Callable[[Any], Any]] = {
+                "exp": lambda v: So3.exp(v).matrix(),
+                "log": lambda m: So3.from_matrix(m).log(),
+                "jl": So3.left_jacobian,
+                "plus": lambda x: (So3.from_matrix(_split_matrix(x)[0]) * So3.exp(x[..., 9:])).matrix(),
+                "qplus": lambda x: (So3(Quaternion(x[..., :4])) * So3.exp(x[..., 4:])).q.data,
+            }
+            return Method("kornia", "torch", fns[kind])
+
+        return build
+
+    def pypose_lie(kind: str) -> Callable[[], Method]:
+        def build() -> Method:
+            import pypose as pp
+            from pypose.lietensor.operation import so3_Jl, so3_Jl_inv
+
+            def from_matrix(m: Any) -> Any:
+                return pp.mat2SO3(m, check=False)
+
+            fns: dict[str, Callable[[Any], Any]] = {
+                "exp": lambda v: pp.so3(v).Exp().matrix(),
+                "log": lambda m: from_matrix(m).Log().tensor(),
+                "jl": so3_Jl,
+                "jl_inv": so3_Jl_inv,
+                "plus": lambda x: (from_matrix(_split_matrix(x)[0]) * pp.so3(x[..., 9:]).Exp()).matrix(),
+                # pypose's quaternions are scalar last
+                "qplus": lambda x: (pp.SO3(x[..., :4]) * pp.so3(x[..., 4:]).Exp()).tensor(),
+            }
+            if kind == "qplus":
+                return Method(
+                    "pypose",
+                    "torch",
+                    fns[kind],
+                    prep=lambda x: np.concatenate([_xyzw(x[..., :4]), x[..., 4:]], axis=-1),
+                    post=_wxyz,
+                )
+            return Method("pypose", "torch", fns[kind])
+
+        return build
+
+    def torchlie_lie(kind: str) -> Callable[[], Method]:
+        def build() -> Method:
+            import torchlie.functional as tf
+
+            fns: dict[str, Callable[[Any], Any]] = {
+                "exp": tf.SO3.exp,
+                "log": tf.SO3.log,
+                "plus": lambda x: tf.SO3.compose(_split_matrix(x)[0], tf.SO3.exp(x[..., 9:])),
+            }
+            return Method(THESEUS, "torch", fns[kind])
+
+        return build
+
+    lie = {
+        "so3_exp": ("rotvec", "matrix", "exp"),
+        "so3_log": ("matrix", "rotvec", "log"),
+        "so3_left_jacobian": ("rotvec", "jacobian", "jl"),
+        "so3_left_jacobian_inverse": ("rotvec", "jacobian", "jl_inv"),
+        "so3_plus": ("matrix+rotvec", "matrix", "plus"),
+        "quaternion_plus": ("quaternion+rotvec", "quaternion", "qplus"),
+    }
+    builders = {"jaxlie": jaxlie_lie, "kornia": kornia_lie, "pypose": pypose_lie, THESEUS: torchlie_lie}
+    for name, (source, target, kind) in lie.items():
+        gaps = LIE_GAPS.get(name, {})
+        table.append(
+            (
+                name,
+                source,
+                target,
+                {peer: build(kind) for peer, build in builders.items() if peer not in gaps},
+            )
+        )
+
     for name, source, target, peers in table:
         if not hasattr(dqt, name):
             continue
-        skipped: list[str] = []
-        methods = [Method("diffquat torch eager", "torch", getattr(dqt, name))]
+        skipped: list[str] = [f"{peer} ({why})" for peer, why in LIE_GAPS.get(name, {}).items()]
+        if name in LIE_REFERENCES:
+            skipped.append(THESEUS_AI)
+        adapt = ADAPTERS.get(name, lambda fn: fn)
+        methods = [Method("diffquat torch eager", "torch", adapt(getattr(dqt, name)))]
         if not quick:
             methods.append(
-                Method("diffquat torch.compile", "torch", compiled(getattr(dqt, name)), compiled=True)
+                Method("diffquat torch.compile", "torch", compiled(adapt(getattr(dqt, name))), compiled=True)
             )
             if hasattr(_core, name):
                 core_fn = getattr(_core, name)
@@ -253,7 +376,7 @@ def build_ops(quick: bool, dynamic: bool | None = None) -> list[OpSpec]:
                         compiled=True,
                     )
                 )
-        methods.append(Method("diffquat jax.jit", "jax", jax.jit(getattr(dqj, name)), compiled=True))
+        methods.append(Method("diffquat jax.jit", "jax", jax.jit(adapt(getattr(dqj, name))), compiled=True))
         if name in JAX_KERNEL_OPS:
             if dqj._xla is None:
                 skipped.append(f"{JAX_KERNELS} (the C extension is not built)")
@@ -261,13 +384,13 @@ def build_ops(quick: bool, dynamic: bool | None = None) -> list[OpSpec]:
                 methods.append(
                     Method(JAX_KERNELS, "jax", jax.jit(with_kernels(getattr(dqj, name))), compiled=True)
                 )
-        methods.append(Method("diffquat numpy", "numpy", getattr(dqn, name)))
+        methods.append(Method("diffquat numpy", "numpy", adapt(getattr(dqn, name))))
         for label, build in peers.items():
             methods += _try(skipped, label, build)
         for m in methods:
             if m.label == "jaxlie (jit)":
                 m.compiled = True
-        ops.append(OpSpec(name, source, target, methods, skipped))
+        ops.append(OpSpec(name, source, target, methods, skipped, LIE_REFERENCES.get(name)))
     return ops
 
 
@@ -280,13 +403,72 @@ def unit_quaternions(n: int, seed: int = 0) -> np.ndarray:
 
 
 def make_input(representation: str, q: np.ndarray) -> np.ndarray:
-    """float64 input of the given representation for scalar-first unit quaternions ``q``."""
+    """float64 input of the given representation for scalar-first unit quaternions ``q``. A packed
+    "<group>+rotvec" input is a random rotation beside the rotation vector of ``q`` (so the accuracy
+    table's edge cases are the perturbations: 0, 1e-10, near and at pi)."""
     rotation = Rotation.from_quat(_xyzw(q))
+    if representation.endswith("+rotvec"):
+        base = make_input(representation.split("+")[0], cases.uniform_quaternions(len(q), seed=21))
+        return np.concatenate([base.reshape(len(q), -1), rotation.as_rotvec()], axis=-1)
     if representation == "quaternion":
         return q
     if representation == "matrix":
         return rotation.as_matrix()
     return rotation.as_rotvec()
+
+
+def _split_matrix(x: Any) -> tuple[Any, Any]:
+    """A packed (..., 12) input: the (..., 3, 3) matrix and the (..., 3) rotation vector."""
+    return x[..., :9].reshape(*x.shape[:-1], 3, 3), x[..., 9:]
+
+
+def _split_quaternion(x: Any) -> tuple[Any, Any]:
+    """A packed (..., 7) input: the (..., 4) quaternion and the (..., 3) rotation vector."""
+    return x[..., :4], x[..., 4:]
+
+
+def _reference_plus(x: np.ndarray) -> np.ndarray:
+    matrix, delta = _split_matrix(x)
+    return matrix @ Rotation.from_rotvec(delta).as_matrix()
+
+
+def _reference_quaternion_plus(x: np.ndarray) -> np.ndarray:
+    q, delta = _split_quaternion(x)
+    return _wxyz((Rotation.from_quat(_xyzw(q)) * Rotation.from_rotvec(delta)).as_quat())
+
+
+THESEUS = "theseus (torchlie)"
+THESEUS_AI = (
+    "theseus-ai itself (its sdist needs torch at build time, which pip's build isolation does not "
+    "provide, and SuiteSparse for scikit-sparse; its SO(3) is torchlie's, timed here)"
+)
+# Peers without the operation, and why (recorded in RESULTS.md under "Left out").
+LIE_GAPS: dict[str, dict[str, str]] = {
+    "so3_left_jacobian": {THESEUS: "no left Jacobian of its own, only inside jexp, with exp"},
+    "so3_left_jacobian_inverse": {
+        "kornia": "no inverse Jacobian",
+        THESEUS: "no inverse Jacobian of its own, only inside jlog, with log",
+    },
+    "quaternion_plus": {THESEUS: "its rotations are matrices only"},
+}
+
+
+# The expected float64 output of each Lie function (the table's oracles: scipy's expm, compositions).
+LIE_REFERENCES: dict[str, Callable[[np.ndarray], np.ndarray] | None] = {
+    "so3_exp": None,
+    "so3_log": None,
+    "so3_left_jacobian": cases.oracle_left_jacobian,
+    "so3_left_jacobian_inverse": cases.oracle_left_jacobian_inverse,
+    "so3_plus": _reference_plus,
+    "quaternion_plus": _reference_quaternion_plus,
+}
+
+
+# The one-input form of each two-argument diffquat function (see the module docstring).
+ADAPTERS: dict[str, Callable[[Callable[..., Any]], Callable[[Any], Any]]] = {
+    "so3_plus": lambda fn: lambda x: fn(*_split_matrix(x)),
+    "quaternion_plus": lambda fn: lambda x: fn(*_split_quaternion(x)),
+}
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -415,7 +597,13 @@ def accuracy(op: OpSpec, method: Method) -> tuple[float, bool | None]:
         warnings.simplefilter("ignore")
         out, grad_finite = _run_with_grad(method, native)
     got = np.asarray(method.post(np.asarray(out, dtype=np.float64)))
-    if op.target == "matrix":
+    if op.reference is not None:
+        expected = op.reference(x64)
+        err = float(np.max(np.abs(got - expected).reshape(len(q), -1).max(-1)))
+        if op.target == "quaternion":  # up to sign, row by row
+            flipped = np.abs(got + expected).reshape(len(q), -1).max(-1)
+            err = float(np.max(np.minimum(np.abs(got - expected).reshape(len(q), -1).max(-1), flipped)))
+    elif op.target == "matrix":
         err = _matrix_error(got, rotation.as_matrix())
     elif op.target == "quaternion":
         # up to sign, row by row: at half-turns w = 0 and rounding legitimately picks the sign
@@ -474,7 +662,7 @@ def machine() -> dict[str, str]:
             info["processor"] = names[0]
     except OSError:
         pass
-    for peer in ("scipy", "roma", "kornia", "pytorch_kinematics", "jaxlie"):
+    for peer in ("scipy", "roma", "kornia", "pytorch_kinematics", "jaxlie", "pypose", "torchlie"):
         try:
             module = __import__(peer)
             info[peer] = str(getattr(module, "__version__", "installed"))
@@ -580,7 +768,7 @@ def merge(paths: list[Path]) -> dict[str, Any]:
     return merged
 
 
-TORCH_PEERS = ("roma", "kornia", "pytorch-kinematics")
+TORCH_PEERS = ("roma", "kornia", "pytorch-kinematics", "pypose", THESEUS)
 
 
 def ratios(results: dict[str, Any]) -> list[str]:

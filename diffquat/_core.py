@@ -57,6 +57,13 @@ CANONICAL: set[str] = set()
 NONFINITE_BY_ARITHMETIC: set[str] = {"quaternion_to_matrix"}
 
 
+def nonfinite_by_arithmetic(fn: F) -> F:
+    """Mark a core function whose arithmetic makes every entry of a non-finite row NaN (see
+    ``NONFINITE_BY_ARITHMETIC``): the backends then add no selection after it."""
+    NONFINITE_BY_ARITHMETIC.add(fn.__name__)
+    return fn
+
+
 def canonical(fn: F) -> F:
     """Mark a core function whose result is a quaternion in canonical sign (see ``CANONICAL``)."""
     CANONICAL.add(fn.__name__)

@@ -36,7 +36,6 @@ accurate to a few ulps, and the first and second derivatives with them.
 
 from __future__ import annotations
 
-import functools
 import math
 from typing import Any
 
@@ -51,9 +50,9 @@ from ._algebra import (
 )
 from ._core import (
     Conversion,
-    _unit_components,
     join_quaternion,
     matrix_to_quaternion,
+    nonfinite_by_arithmetic,
     op,
     quaternion_to_matrix,
     split_quaternion,
@@ -146,12 +145,13 @@ def so3_log(xp: Any, matrix: Any, *, to_quaternion: Conversion = matrix_to_quate
 # Why u = t^2 < 1 (t = 1 radian), and why for every dtype: the closed forms of the outer coefficients
 # subtract nearly equal numbers, t - sin t ~ t^3 / 6 and 1 - (t/2) cot(t/2) ~ t^2 / 12, so their
 # rounding errors are amplified by ~6 / t^2 and ~12 / t^2 in relative terms: the same number of ulps
-# whatever the dtype. Measured against mpmath at t >= 1: within 3 ulps (t - sin t) and 10 ulps
-# (1/t^2 - cot(t/2) / (2 t)) in float32 and float64 alike; at t = 0.5 already 10 and 50 ulps, at
-# t = 0.02 (eps^(1/4) in float32, the usual switch) over 1e4. The derivative of a closed form loses the
-# same factor again (autodiff of t - sin t computes 1 - cos t), so the first and second derivatives are
-# accurate from t = 1 on as well. Below, the Taylor series in u, with as many terms as the dtype needs
-# (see _truncated): what depends on the dtype is the length of the series, not where it is used.
+# whatever the dtype. Measured against mpmath from t = 1 on: within 3 ulps (t - sin t) and 10 ulps
+# (1/t^2 - cot(t/2) / (2 t)), in float32 and float64 alike; from t = 0.5 on already 10 and 50 ulps; at
+# t = 0.02 (eps^(1/4) in float32, the usual switch) 2e3 to 2e4 ulps. The derivative of a closed form
+# loses the same factor again (autodiff of t - sin t computes 1 - cos t), so from t = 1 on the first
+# and second derivatives are accurate too (float32: within 2 and 20 ulps of a float64 evaluation).
+# Below, the Taylor series in u, as long as the dtype needs (see _truncated): what depends on the
+# dtype is the length of the series, not where it is used.
 SERIES_BELOW = 1.0
 
 # |B_2|, |B_4|, ..., |B_24| (Bernoulli numbers): (t/2) cot(t/2) = 1 - sum_n |B_2n| t^2n / (2n)!.
@@ -169,11 +169,11 @@ _B_SERIES = tuple((-1) ** k / math.factorial(2 * k + 3) for k in range(12))
 _C_SERIES = tuple(b / math.factorial(2 * k + 2) for k, b in enumerate(_BERNOULLI))
 
 
-@functools.cache
 def _truncated(coefficients: tuple[float, ...], eps: float) -> tuple[float, ...]:
     """The shortest head of a Taylor series in u whose first omitted term at ``u = SERIES_BELOW`` is
     below a quarter of an ulp (``eps / 4``) of its leading term: float32 takes 5 terms of each series
-    here, float64 8 (t - sin t), 9 (1 - cos t) and 11 (the inverse's)."""
+    here, float64 8 (t - sin t), 9 (1 - cos t) and 11 (the inverse's). Not cached: a dozen
+    comparisons of Python numbers, and Dynamo warns of ``functools.cache``."""
     for n in range(2, len(coefficients)):
         if abs(coefficients[n]) * SERIES_BELOW**n <= 0.25 * eps * abs(coefficients[0]):
             return coefficients[:n]
@@ -258,7 +258,8 @@ _INVERSE_DOC = """
 """
 _ACCURACY_DOC = """
     Args:
-        omega: rotation vectors, shape ``(..., 3)``, any length.
+        omega: rotation vectors, shape ``(..., 3)``, any length. A NaN or an infinity makes the whole
+            matrix NaN (through ``|w|^2``, which every entry reads).
 
     Returns:
         Shape ``(..., 3, 3)``. The coefficients are Taylor series below ``|w| = 1`` and closed forms in
@@ -267,24 +268,28 @@ _ACCURACY_DOC = """
 """
 
 
+@nonfinite_by_arithmetic
 @op(omega=(3,))
 def so3_left_jacobian(xp: Any, omega: Any) -> Any:
     p, q, r = _jacobian_coefficients(xp, omega)
     return _assemble(xp, omega, p, q, r)
 
 
+@nonfinite_by_arithmetic
 @op(omega=(3,))
 def so3_right_jacobian(xp: Any, omega: Any) -> Any:
     p, q, r = _jacobian_coefficients(xp, omega)
     return _assemble(xp, omega, p, -q, r)
 
 
+@nonfinite_by_arithmetic
 @op(omega=(3,))
 def so3_left_jacobian_inverse(xp: Any, omega: Any) -> Any:
     p, r = _inverse_coefficients(xp, omega)
     return _assemble(xp, omega, p, -0.5, r)
 
 
+@nonfinite_by_arithmetic
 @op(omega=(3,))
 def so3_right_jacobian_inverse(xp: Any, omega: Any) -> Any:
     p, r = _inverse_coefficients(xp, omega)
@@ -365,12 +370,15 @@ def so3_minus(
 
 
 def _unit(xp: Any, q: Any, scalar_first: bool) -> tuple[Any, Any, Any, Any]:
-    """Components (w, x, y, z) of ``q / |q|``, the zero quaternion read as the identity. Scaled by the
-    largest component before the norm is taken (``_core._unit_components``), so that no derivative
-    meets a power of ``1 / |q|^2`` (which overflows float32 at small norms)."""
+    """Components (w, x, y, z) of ``q / |q|``, the zero quaternion read as the identity. Divided by
+    the largest component before the norm is taken (as ``_core._unit_components`` does), so that no
+    derivative meets a power of ``1 / |q|^2``, which overflows float32 at small norms; that component
+    is at least ``|q| / 2 > 0`` once the zero quaternion is the identity."""
     w, x, y, z = nonzero_or_identity(xp, *split_quaternion(q, scalar_first))
-    w, x, y, z, _ = _unit_components(xp, join_quaternion(xp, w, x, y, z, True), True)
-    return w, x, y, z
+    big = xp.maximum(xp.maximum(xp.abs(w), xp.abs(x)), xp.maximum(xp.abs(y), xp.abs(z)))
+    w, x, y, z = w / big, x / big, y / big, z / big
+    inv = 1.0 / xp.sqrt(w * w + x * x + y * y + z * z)
+    return w * inv, x * inv, y * inv, z * inv
 
 
 @op(q=(4,), delta=(3,))

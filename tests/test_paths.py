@@ -28,7 +28,7 @@ from cases import (
 from torch.utils._python_dispatch import TorchDispatchMode
 
 import diffquat.torch as dq
-from diffquat import _algebra, _backend, _core, _euler
+from diffquat import _algebra, _backend, _core, _euler, _lie
 from diffquat.torch import _cpu, _dispatch
 
 # ---------------------------------------------------------------------------------------------------
@@ -342,6 +342,9 @@ def _function_nodes(out: torch.Tensor) -> set[str]:
     return names
 
 
+_FIXED = _algebra.axis_angle_to_matrix(
+    torch, torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64) * 0.7 / 14**0.5
+)
 COMPOSITES = [
     (dq.axis_angle_to_matrix, _algebra.axis_angle_to_matrix, "QuaternionToMatrixKernel"),
     (dq.matrix_to_axis_angle, _algebra.matrix_to_axis_angle, "MatrixToQuaternionKernel"),
@@ -350,17 +353,39 @@ COMPOSITES = [
         lambda xp, a: _euler.euler_angles_to_matrix(xp, a, "ZXZ"),
         "QuaternionToMatrixKernel",
     ),
+    (dq.so3_exp, _lie.so3_exp, "QuaternionToMatrixKernel"),
+    (dq.so3_log, _lie.so3_log, "MatrixToQuaternionKernel"),
+    # plus and minus, the second argument fixed (a rotation about (1, 2, 3) by 0.7 rad)
+    (
+        lambda d: dq.so3_plus(_FIXED, d, side="left"),
+        lambda xp, d: _lie.so3_plus(xp, _FIXED, d, side="left"),
+        "QuaternionToMatrixKernel",
+    ),
+    (
+        lambda m: dq.so3_minus(m, _FIXED),
+        lambda xp, m: _lie.so3_minus(xp, m, _FIXED),
+        "MatrixToQuaternionKernel",
+    ),
 ]
 
 
 @pytest.mark.parametrize(
     ("public", "composite", "function"),
     COMPOSITES,
-    ids=["axis_angle_to_matrix", "matrix_to_axis_angle", "euler_angles_to_matrix"],
+    ids=[
+        "axis_angle_to_matrix",
+        "matrix_to_axis_angle",
+        "euler_angles_to_matrix",
+        "so3_exp",
+        "so3_log",
+        "so3_plus",
+        "so3_minus",
+    ],
 )
 def test_composites_take_the_kernels_for_their_conversion(public: Any, composite: Any, function: str) -> None:
-    """Axis-angle and Euler conversions go through the evaluation the quaternion conversion inside them
-    would take (eager CPU: the kernels), with the core composite's values and gradients."""
+    """Axis-angle and Euler conversions, and the Lie maps built on them (exp, log, plus, minus), go
+    through the evaluation the quaternion conversion inside them would take (eager CPU: the kernels),
+    with the core composite's values and gradients."""
     special = [[0.0, 0.0, 0.0], [np.pi, 0.0, 0.0], [0.0, 0.0, np.pi - 1e-9], [0.0, 3.2, 0.0]]
     rest = torch.randn(12, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
     x = torch.cat([torch.tensor(special, dtype=torch.float64), rest])

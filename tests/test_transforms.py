@@ -50,6 +50,22 @@ def close(a: Any, b: Any) -> None:
     np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-12)
 
 
+def close_values(op: Op, a: Any, b: Any, smooth: np.ndarray) -> None:
+    """Values under a compiler equal eager ones, except where the op jumps between two results that
+    both stand for the rotation (``op.up_to_sign``: a rotation vector at exactly pi, whose sign
+    follows a rounding error of the size of 1e-17 that a compiler's reordering may flip): there, up to
+    sign."""
+    a, b = np.asarray(a), np.asarray(b)
+    if not op.up_to_sign:
+        close(a, b)
+        return
+    close(a[smooth], b[smooth])
+    rest = ~smooth
+    same = np.isclose(a[rest], b[rest], rtol=1e-12, atol=1e-12).reshape(int(rest.sum()), -1).all(-1)
+    flipped = np.isclose(a[rest], -b[rest], rtol=1e-12, atol=1e-12).reshape(int(rest.sum()), -1).all(-1)
+    assert np.all(same | flipped)
+
+
 def close_derivatives(a: Any, b: Any, smooth: np.ndarray) -> None:
     """Derivatives under a transform equal eager ones on the rows where the op is differentiable
     (``smooth``). At a kink (a distance between antipodal rotations, |w| at w = 0) the derivative
@@ -73,7 +89,7 @@ def test_torch_compile_fullgraph_forward_and_backward(op: Op, backend: Backend, 
     eager_in = [torch.tensor(x, requires_grad=True) for x in xs]
     comp_in = [torch.tensor(x, requires_grad=True) for x in xs]
     eager, comp = fn(*eager_in), compiled(*comp_in)
-    close(comp.detach(), eager.detach())
+    close_values(op, comp.detach(), eager.detach(), smooth)
     cot = torch.tensor(np.random.default_rng(2).normal(size=tuple(eager.shape)))
     for a, b in zip(
         torch.autograd.grad(comp, comp_in, cot), torch.autograd.grad(eager, eager_in, cot), strict=True
@@ -127,7 +143,7 @@ def test_jax_jit_vmap_grad(op: Op, backend: Backend, dtype: str) -> None:
     xs, smooth, w = setup(op)
     arrays = [jnp.asarray(x) for x in xs]
     eager = fn(*arrays)
-    close(jax.jit(fn)(*arrays), eager)
+    close_values(op, jax.jit(fn)(*arrays), eager, smooth)
     close(jax.vmap(fn)(*arrays), eager)
     loss = scalar_loss(fn, jnp.asarray(w))
     argnums = tuple(range(len(arrays)))
