@@ -377,6 +377,35 @@ def test_torch_refusals() -> None:
     assert len(optimizer.param_groups) == 1  # a refused group is not kept
 
 
+def test_readme_example_runs() -> None:
+    """The README's block on the optimisers, as written there: every rotation ends at its target, and
+    the parameters are rotations."""
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    start = text.index("```python", text.index("## Optimising rotations on the manifold"))
+    code = text[start + len("```python") : text.index("```", start + 1)]
+    torch.manual_seed(0)
+    scope: dict[str, Any] = {}
+    exec(code, scope)  # the README's own code
+    R = scope["R"].detach()
+    assert dqt.matrix_geodesic_distance(R, scope["target"]).max() < 1e-3
+    assert (R.transpose(-1, -2) @ R - torch.eye(3)).abs().max() < 1e-5
+
+
+def test_modules_declare_their_public_names() -> None:
+    import diffquat.jax.optim as jax_optim
+    import diffquat.torch.optim as torch_optim
+
+    for module in (torch_optim, jax_optim):
+        defined = {
+            n
+            for n, v in vars(module).items()
+            if callable(v) and getattr(v, "__module__", None) == module.__name__ and not n.startswith("_")
+        }
+        assert defined <= set(module.__all__)
+
+
 # ---------------------------------------------------------------------------------------------------
 # torch and jax take the same steps; jax on its own
 
