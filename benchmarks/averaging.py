@@ -35,7 +35,7 @@ from benchmarks.run import Timing, machine, time_all  # noqa: E402
 
 TARGETS = (("1%", 0.01), ("0.1%", 0.001))
 FULL = {"n": 1000, "steps": 200, "lm_iterations": 12, "repeats": 3, "pypose_n": 200, "pypose_iterations": 8}
-QUICK = {"n": 60, "steps": 40, "lm_iterations": 6, "repeats": 1, "pypose_n": 30, "pypose_iterations": 3}
+QUICK = {"n": 40, "steps": 30, "lm_iterations": 5, "repeats": 1, "pypose_n": 20, "pypose_iterations": 2}
 STEP_SIZES_FULL = (1, 1000, 100_000)
 STEP_SIZES_QUICK = (1, 1000)
 

@@ -487,7 +487,7 @@ class Settings:
 
 
 FULL = Settings(n=1000, steps=200, lm_iterations=12, pypose_n=200, pypose_iterations=8)
-SMALL = Settings(n=100, steps=60, lm_iterations=8, pypose_n=40, pypose_iterations=3)
+SMALL = Settings(n=60, steps=40, lm_iterations=6, pypose_n=20, pypose_iterations=2)
 
 ADAM = "Adam, raw quaternions"
 RIEMANNIAN = "RiemannianAdam (diffquat)"

@@ -421,7 +421,6 @@ CROSS: dict[
         lambda ps: RiemannianAdam(ps, lr=0.05, amsgrad=True),
         lambda: jo.riemannian_adam(0.05, amsgrad=True),
     ),
-    "sgd": (lambda ps: RiemannianSGD(ps, lr=0.005), lambda: jo.riemannian_sgd(0.005)),
     "sgd-nesterov": (
         lambda ps: RiemannianSGD(ps, lr=0.005, momentum=0.9, nesterov=True),
         lambda: jo.riemannian_sgd(0.005, 0.9, nesterov=True),
