@@ -42,6 +42,36 @@ def test_quick_benchmark_writes_results(tmp_path: Path) -> None:
     assert (tmp_path / "results.png").stat().st_size > 0
 
 
+def test_quick_averaging_benchmark_writes_results(tmp_path: Path) -> None:
+    """The rotation-averaging benchmark (``benchmarks.averaging --quick``): every diffquat method has a
+    row in the end-to-end table and in the optimiser-step table; peers that are not installed are
+    named as skipped."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    subprocess.run(
+        [sys.executable, "-m", "benchmarks.averaging", "--quick", "--out", str(tmp_path)],
+        cwd=ROOT, env=env, check=True, capture_output=True, timeout=600,
+    )  # fmt: skip
+    text = (tmp_path / "AVERAGING.md").read_text()
+    for heading in ("## End to end:", "## pypose (dense Jacobian) beside diffquat:", "## One optimiser step"):
+        assert heading in text
+    for row in (
+        "| Adam, raw quaternions |",
+        "| RiemannianAdam (diffquat) |",
+        "| RiemannianAdam (diffquat, jax) |",
+        "| Levenberg-Marquardt (diffquat Jacobians) |",
+        "| diffquat RiemannianAdam, matrices (torch) |",
+        "| diffquat riemannian_adam, matrices (jax.jit) |",
+    ):
+        assert row in text
+    for peer in ("| geoopt RiemannianAdam |", "| pypose LM (dense) |"):
+        assert peer in text  # a row either way: timed, or "skipped: ... is not installed"
+    import json
+
+    results = json.loads((tmp_path / "averaging.json").read_text())
+    lm = results["end_to_end"]["methods"]["Levenberg-Marquardt (diffquat Jacobians)"]
+    assert lm["seconds_to_1%"] is not None  # the reference reaches its own optimum
+
+
 def test_merge_lists_only_the_runs_whose_tables_it_shows(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
