@@ -453,7 +453,7 @@ LIE_GAPS: dict[str, dict[str, str]] = {
 }
 
 
-# The expected float64 output of each Lie function (the table's oracles: scipy's expm, compositions).
+# The expected float64 output of each Lie function (the table's oracles: the defining series, compositions).
 LIE_REFERENCES: dict[str, Callable[[np.ndarray], np.ndarray] | None] = {
     "so3_exp": None,
     "so3_log": None,
