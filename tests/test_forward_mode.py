@@ -19,6 +19,7 @@ import torch
 import torch.autograd.forward_ad as fwAD
 from cases import CASES_BY_NAME, EDGE_CASES, Op, base_rows, gradients, jax_only, torch_only
 from conftest import Backend
+from test_transforms import close, close_derivatives, close_values, scalar_loss
 
 import diffquat.jax.nn as jnn
 import diffquat.torch.nn as tnn
@@ -94,16 +95,19 @@ def check_tangent(
     xs: list[np.ndarray],
     ts: list[np.ndarray],
     smooth: np.ndarray,
+    w: np.ndarray | None = None,
 ) -> None:
     """``tangent`` = J t: finite everywhere; where smooth, equal to central differences along t and
-    adjoint to reverse mode: ``<J t, w>_row = sum_i <t_i, (J^T w)_i>_row`` for a random w."""
+    adjoint to reverse mode: ``<J t, w>_row = sum_i <t_i, (J^T w)_i>_row`` for a random w (or the
+    ``w`` given, which ``pullback`` may have pulled back already)."""
     dy = rows(tangent)
     assert np.all(np.isfinite(dy))
     plus = evaluate([x + FD_STEP * t for x, t in zip(xs, ts, strict=True)])
     minus = evaluate([x - FD_STEP * t for x, t in zip(xs, ts, strict=True)])
     # central differences: error O(h^2 f''') plus rounding O(eps / h), both ~1e-10 here
     assert_rows_close(dy, rows(plus - minus) / (2 * FD_STEP), 1e-6, smooth)
-    w = np.random.default_rng(7).normal(size=np.shape(tangent))
+    if w is None:
+        w = np.random.default_rng(7).normal(size=np.shape(tangent))
     forward = np.sum(dy * rows(w), axis=-1)
     reverse = sum(np.sum(rows(g) * rows(t), axis=-1) for g, t in zip(pullback(w), ts, strict=True))
     assert_rows_close(forward[:, None], np.asarray(reverse)[:, None], 1e-10, smooth)
@@ -183,30 +187,47 @@ def test_torch_compiled_forward_mode_equals_eager(op: Op, backend: Backend, dtyp
 @jax_only
 @gradients
 @base_rows
-def test_jax_forward_mode_matches_reverse_mode_and_finite_differences(
-    op: Op, backend: Backend, dtype: str
-) -> None:
-    """``jax.jvp`` and ``vmap(jacfwd)``, compiled with ``jax.jit`` as users run them."""
+def test_jax_jit_vmap_grad_jvp_and_jacobians(op: Op, backend: Backend, dtype: str) -> None:
+    """``jax.jit``, ``vmap``, ``grad``, ``jvp``, ``vjp`` and ``vmap(jacfwd)`` / ``vmap(jacrev)`` at every
+    edge case: compiled as users run them, in one program (each transform compiled on its own cost a
+    third more, compilation being what these tests cost), against eager execution, reverse mode and
+    central differences."""
     fn = op.gradient_function(backend.module)
     xs, smooth, _ = edge_batch(op)
     ts = directions(xs, seed=1)
+    arrays, tangents = tuple(map(jnp.asarray, xs)), tuple(map(jnp.asarray, ts))
     argnums = tuple(range(len(xs)))
-    jvp = jax.jit(lambda xs, ts: jax.jvp(fn, xs, ts)[1])
-    tangent = jvp(tuple(map(jnp.asarray, xs)), tuple(map(jnp.asarray, ts)))
+    loss = scalar_loss(fn, jnp.asarray(np.random.default_rng(3).normal(size=len(xs[0]))))
+    w = jnp.asarray(np.random.default_rng(7).normal(size=np.shape(fn(*arrays))))
+
+    @jax.jit
+    def transforms(xs: tuple[Any, ...], ts: tuple[Any, ...], w: Any) -> dict[str, Any]:
+        return {
+            "value": fn(*xs),
+            "grad": jax.grad(loss, argnums=argnums)(*xs),
+            "jvp": jax.jvp(fn, xs, ts)[1],
+            "vjp": jax.vjp(fn, *xs)[1](w),
+            "jacfwd": jax.vmap(jax.jacfwd(fn, argnums))(*xs),
+            "jacrev": jax.vmap(jax.jacrev(fn, argnums))(*xs),
+        }
+
+    out = transforms(arrays, tangents, w)
+    eager = fn(*arrays)
+    close_values(op, out["value"], eager, smooth)
+    close(jax.vmap(fn)(*arrays), eager)
+    for a, b in zip(out["grad"], jax.grad(loss, argnums=argnums)(*arrays), strict=True):
+        close_derivatives(a, b, smooth)
     evaluate = jax.jit(lambda moved: fn(*moved))
-    pullback = jax.jit(lambda w: jax.vjp(fn, *map(jnp.asarray, xs))[1](w))
     check_tangent(
-        tangent,
+        out["jvp"],
         lambda moved: np.asarray(evaluate(tuple(map(jnp.asarray, moved)))),
-        lambda w: [np.asarray(g) for g in pullback(jnp.asarray(w))],
+        lambda _: [np.asarray(g) for g in out["vjp"]],
         xs,
         ts,
         smooth,
+        w=np.asarray(w),
     )
-    jacobians = jax.jit(
-        lambda *xs: (jax.vmap(jax.jacfwd(fn, argnums))(*xs), jax.vmap(jax.jacrev(fn, argnums))(*xs))
-    )
-    for a, b in zip(*jacobians(*map(jnp.asarray, xs)), strict=True):
+    for a, b in zip(out["jacfwd"], out["jacrev"], strict=True):
         assert bool(jnp.all(jnp.isfinite(a)))
         assert_rows_close(a, b, 1e-10, smooth)
 
