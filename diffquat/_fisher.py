@@ -274,15 +274,11 @@ def reduced_second_moment(xp: Any, x: Any) -> Any:
     return xp.matmul(v * dev[..., None, :], _transpose(xp, v))
 
 
-def reduced_second_moment_tangent(xp: Any, x: Any, moment: Any, dx: Any) -> Any:
-    """The derivative of :func:`reduced_second_moment` along ``dx`` (self-adjoint: also its reverse mode),
-    i.e. the Hessian of the log normaliser: ``Cov(q q^T, q^T dX q)``. In X's eigenbasis, with
-    ``D = V^T sym(dX) V``, the independent sign flips of the Bingham distribution leave ``2 E[q_a^2 q_c^2]
-    D_ac`` off the diagonal and ``sum_c Cov(q_a^2, q_c^2) D_cc`` on it: moments only, no division by
-    eigenvalue gaps, so exact where eigenvalues repeat."""
-    del moment
-    b, v = _eigh(xp, x)
-    _, dev, second = _moments(xp, b, 2)
+def _hessian(xp: Any, v: Any, dev: Any, second: Any, dx: Any) -> Any:
+    """``Cov(q q^T, q^T dX q)`` from the eigenvectors V, ``m - 1/4`` and ``E[q_a^2 q_c^2]``: in X's
+    eigenbasis, with ``D = V^T sym(dX) V``, the independent sign flips of the Bingham distribution leave
+    ``2 E[q_a^2 q_c^2] D_ac`` off the diagonal and ``sum_c Cov(q_a^2, q_c^2) D_cc`` on it: moments only,
+    no division by eigenvalue gaps, so exact where eigenvalues repeat."""
     m = dev + 0.25
     vt = _transpose(xp, v)
     d = xp.matmul(vt, xp.matmul(0.5 * (dx + _transpose(xp, dx)), v))
@@ -291,9 +287,39 @@ def reduced_second_moment_tangent(xp: Any, x: Any, moment: Any, dx: Any) -> Any:
     on = xp.sum(cov * diag[..., None, :], axis=-1)
     off = 2.0 * second * d
     eye = [1.0 if a == c else 0.0 for a in range(4) for c in range(4)]
-    eye = xp.reshape(_constant(xp, eye, x, 1), (*(1,) * (x.ndim - 2), 4, 4))
+    eye = xp.reshape(_constant(xp, eye, v, 1), (*(1,) * (v.ndim - 2), 4, 4))
     inner = off * (1.0 - eye) + on[..., :, None] * eye
     return xp.matmul(v, xp.matmul(inner, vt))
+
+
+def reduced_second_moment_tangent(xp: Any, x: Any, moment: Any, dx: Any) -> Any:
+    """The derivative of :func:`reduced_second_moment` along ``dx`` (self-adjoint: also its reverse mode),
+    i.e. the Hessian of the log normaliser, ``Cov(q q^T, q^T dX q)`` (see :func:`_hessian`)."""
+    del moment
+    b, v = _eigh(xp, x)
+    _, dev, second = _moments(xp, b, 2)
+    return _hessian(xp, v, dev, second, dx)
+
+
+def _expansion(xp: Any, x0: Any) -> tuple[Any, Any, Any, Any, Any]:
+    b, v = _eigh(xp, x0)
+    value, dev, second = _moments(xp, b, 2)
+    return value, xp.matmul(v * dev[..., None, :], _transpose(xp, v)), v, dev, second
+
+
+def reduced_log_normalizer_taylor(xp: Any, x0: Any, dx: Any) -> Any:
+    """:func:`reduced_log_normalizer` at ``x0 + dx`` to second order in ``dx``, from one
+    eigendecomposition of ``x0``: for graph capture with ``dx = x - x0`` zero in value and ``x0`` a
+    constant, its value and first and second derivatives in x are the map's at x (third ones are 0)."""
+    value, grad, v, dev, second = _expansion(xp, x0)
+    quadratic = grad + 0.5 * _hessian(xp, v, dev, second, dx)
+    return value + xp.sum(quadratic * dx, axis=(-2, -1))
+
+
+def reduced_second_moment_taylor(xp: Any, x0: Any, dx: Any) -> Any:
+    """:func:`reduced_second_moment` at ``x0 + dx`` to first order (as above: its derivative at x)."""
+    _, grad, v, dev, second = _expansion(xp, x0)
+    return grad + _hessian(xp, v, dev, second, dx)
 
 
 def reduced_log_normalizer_tangent(
@@ -374,6 +400,14 @@ def matrix_fisher_log_normalizer(xp: Any, F: Any, *, normalizer: Normalizer = re
     return normalizer(xp, davenport(xp, F))
 
 
+@op(F=(3, 3))
+def matrix_fisher_mean(xp: Any, F: Any, *, moment: Callable[[Any, Any], Any] = reduced_second_moment) -> Any:
+    """``E[R]`` under the matrix Fisher distribution (the gradient of its log normaliser), shape
+    ``(..., 3, 3)``: ``K^*(E[q q^T] - I/4)`` (``K^*`` annihilates I, and the deviation keeps its relative
+    precision down to F = 0, where ``E[R] ~ F/3``)."""
+    return davenport_adjoint(xp, moment(xp, davenport(xp, F)))
+
+
 @op(F=(3, 3), matrix=(3, 3))
 def matrix_fisher_nll(
     xp: Any, F: Any, matrix: Any, *, normalizer: Normalizer = reduced_log_normalizer
@@ -389,9 +423,11 @@ def matrix_fisher_nll(
         Shape ``(...)``: ``log c(F) - tr(F^T R)``, the negative log density against the Haar probability
         measure (uniform rotations: 0 for F = 0). Derivatives as :func:`matrix_fisher_log_normalizer`'s.
     """
+    # the normaliser on F's own batch (a batch of rotations for one F needs it once), then broadcast
     batch = tuple(xp.broadcast_shapes(F.shape[:-2], matrix.shape[:-2]))
-    F, matrix = xp.broadcast_to(F, (*batch, 3, 3)), xp.broadcast_to(matrix, (*batch, 3, 3))
-    return normalizer(xp, davenport(xp, F)) - xp.sum(F * matrix, axis=(-2, -1))
+    log_c = _lead(xp, normalizer(xp, davenport(xp, F)), len(batch))
+    energy = xp.broadcast_to(F, (*batch, 3, 3)) * xp.broadcast_to(matrix, (*batch, 3, 3))
+    return log_c - xp.sum(energy, axis=(-2, -1))
 
 
 @op(F=(3, 3))
@@ -417,8 +453,8 @@ def matrix_fisher_mode(xp: Any, F: Any, *, procrustes: Callable[[Any, Any], Any]
 # sum_a 1/(beta + 2 l_a) = 1 maximises the acceptance. Over every L the acceptance is at least 0.4469
 # (its infimum, reached as L grows without bound), so that 64 proposals all fail with probability at
 # most 0.5531^64 < 4e-17 per sample.
-SAMPLE_ROUNDS = 8
-SAMPLE_PROPOSALS = 8  # per round: 64 proposals
+SAMPLE_ROUNDS = 4
+SAMPLE_PROPOSALS = 16  # per round: 64 proposals
 _NEWTON_STEPS = 10  # from beta = 1 (left of the root: the function is convex and decreasing), 7 suffice
 
 
@@ -431,6 +467,12 @@ def _acg_beta(xp: Any, lam: Any) -> Any:
 
 
 Draw = Callable[[int], tuple[Any, Any]]
+
+
+def _lead(xp: Any, a: Any, rank: int) -> Any:
+    """``a`` with unit axes in front, to ``rank`` (jax may be set to refuse implicit rank promotion)."""
+    return xp.reshape(a, (1,) * (rank - a.ndim) + tuple(a.shape))
+
 # The sampler makes the rows of a non-finite F NaN itself (its sample axes come first, the backend's
 # rule appends axes): see the end of matrix_fisher_sample.
 NONFINITE_BY_ARITHMETIC.add("matrix_fisher_sample")
@@ -455,22 +497,25 @@ def matrix_fisher_sample(xp: Any, F: Any, *, draw: Draw) -> Any:
     done: Any = None
     for k in range(SAMPLE_ROUNDS):
         normal, uniform = draw(k)
-        y = normal * scale[..., None, :]
+        rank = normal.ndim  # (*sample, *batch, proposal, 4): F's arrays get the sample axes as unit axes
+        y = normal * _lead(xp, scale[..., None, :], rank)
         x = y / xp.sqrt(xp.sum(y * y, axis=-1, keepdims=True))
-        t = xp.sum(lam[..., None, :] * x * x, axis=-1)
+        t = xp.sum(_lead(xp, lam[..., None, :], rank) * x * x, axis=-1)
         # log(1 - u) with u in [0, 1): log of a uniform in (0, 1], never -inf
-        ratio = -t + 2.0 * xp.log1p(2.0 * t / beta[..., None]) - log_bound[..., None]
-        accept = xp.log1p(-uniform) < ratio
-        pick, hit = x[..., -1, :], accept[..., -1]
-        for j in range(SAMPLE_PROPOSALS - 2, -1, -1):  # the first accepted of this round
-            pick = xp.where(accept[..., j, None], x[..., j, :], pick)
-            hit = hit | accept[..., j]
+        ratio = -t + 2.0 * xp.log1p(2.0 * t / _lead(xp, beta[..., None], rank - 1))
+        accept = xp.log1p(-uniform) < ratio - _lead(xp, log_bound[..., None], rank - 1)
+        # the first accepted of this round: where the running count of acceptances first reaches 1
+        one, zero = xp.ones_like(t), xp.zeros_like(t)  # (a where of two Python floats is float64 in NumPy)
+        count = xp.cumsum(xp.where(accept, one, zero), axis=-1)
+        one_hot = xp.where(accept & (count == 1.0), one, zero)
+        pick = xp.sum(x * one_hot[..., None], axis=-2)
+        hit = count[..., -1] > 0.0
         if chosen is None:
             mode = xp.zeros_like(pick) + _constant(xp, [0.0, 0.0, 0.0, 1.0], pick, pick.ndim)
             chosen, done = xp.where(hit[..., None], pick, mode), hit
         else:
             chosen, done = xp.where(done[..., None], chosen, pick), done | hit
-    q = xp.sum(v * chosen[..., None, :], axis=-1)  # V x, scalar-first (w, x, y, z)
+    q = xp.sum(_lead(xp, v, chosen.ndim + 1) * chosen[..., None, :], axis=-1)  # V x: (w, x, y, z)
     # the backend's rule for non-finite rows, here: the sample axes lead, where the rule appends axes
     bad = xp.reshape(bad, (*(1,) * (q.ndim - 1 - bad.ndim), *bad.shape, 1))
     q = xp.where(bad, xp.nan, q)
@@ -506,19 +551,22 @@ def bingham_nll(
         Shape ``(...)``: ``q^T A q / |q|^2 + log c_B(A)`` for the density ``exp(-q^T A q) / c_B(A)``
         against the uniform probability measure on S^3 (equivalently, on SO(3)). The sign makes the
         head's point estimate, the eigenvector of A's *smallest* eigenvalue
-        (:func:`symmetric_matrix_to_quaternion`), the mode. The density is the matrix Fisher one of the
-        F with ``K(F) = tr(A)/4 I - A`` (the proper singular values of F are ``tr(A)/4 - (a_0 + a_i)/2``
-        for A's ascending eigenvalues a_0..a_3), so ``log c_B(A) = log c(F) - tr(A)/4``: the same
-        normaliser, with the same derivatives.
+        (:func:`symmetric_matrix_to_quaternion`), the mode. The distribution is the matrix Fisher one
+        of the F with ``K(F) = tr(A)/4 I - A`` (``exp(-q^T A q) = e^{-tr(A)/4} exp(tr(F^T R(q)))``; the
+        proper singular values of F are ``tr(A)/4 - (a_0 + a_i)/2`` for A's ascending eigenvalues
+        a_0..a_3): ``bingham_nll(a, q) = matrix_fisher_nll(F, R(q))``, ``log c_B(A) = log c(F) -
+        tr(A)/4``, computed by the same normaliser with the same derivatives.
     """
     if not scalar_first:  # re-index to (w, x, y, z) first, so that both orders compute the same
         a = xp.stack([a[..., _INDEX[(_XYZW[i], _XYZW[j])]] for i, j in _UPPER], axis=-1)
         q = join_quaternion(xp, *split_quaternion(q, False), True)
     batch = tuple(xp.broadcast_shapes(a.shape[:-1], q.shape[:-1]))
-    mat = _symmetric(xp, xp.broadcast_to(a, (*batch, 10)))
+    mat = _symmetric(xp, a)
+    trace = mat[..., 0, 0] + mat[..., 1, 1] + mat[..., 2, 2] + mat[..., 3, 3]
+    log_c = _lead(xp, normalizer(xp, -mat) - 0.25 * trace, len(batch))  # on a's own batch, once
     w, x, y, z, inv = _unit_components(xp, xp.broadcast_to(q, (*batch, 4)), True)
     w = xp.where(inv == 0.0, 1.0, w)  # the zero quaternion is the identity
     u = xp.stack([w, x, y, z], axis=-1)
-    energy = xp.sum(u * xp.matmul(mat, u[..., None])[..., 0], axis=-1)
-    trace = mat[..., 0, 0] + mat[..., 1, 1] + mat[..., 2, 2] + mat[..., 3, 3]
-    return energy + normalizer(xp, -mat) - 0.25 * trace
+    full = xp.broadcast_to(_lead(xp, mat, len(batch) + 2), (*batch, 4, 4))
+    energy = xp.sum(u * xp.matmul(full, u[..., None])[..., 0], axis=-1)
+    return energy + log_c

@@ -234,6 +234,7 @@ _EDGE_RAW: dict[str, list[tuple[np.ndarray, bool]]] = {
     ],
     "10d": [(np.array([0.0, 0, 0, 0, 1, 0, 0, 2, 0, 3]), True), (np.zeros(10), False)],
 }
+_EDGE_RAW["fisher"] = _EDGE_RAW["9d"]  # the same map (the matrix Fisher mode), its F being the raw output
 
 
 def head_inputs(representation: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -330,7 +331,7 @@ def test_torch_heads_under_jvp_jacfwd_and_hessian(representation: str) -> None:
         # rules as they are. The rules hold a regularisation delta = sqrt(eps) |M| (the solves of
         # _representations.py), so the two second derivatives agree to O(sqrt(eps)) = 1.5e-8, not
         # to rounding (both are that close to finite differences of torch's SVD gradient).
-        second = name not in ("jvp", "jacfwd") and representation in ("9d", "10d")
+        second = name not in ("jvp", "jacfwd") and representation in ("9d", "10d", "fisher")
         assert_rows_close(value.reshape(b, -1), eager[name].reshape(b, -1), 1e-7 if second else 1e-12)
 
 

@@ -24,8 +24,8 @@ import diffquat.jax.nn as jnn
 import diffquat.torch.nn as tnn
 
 heads = only(backend=lambda b: b in ("torch", "jax"))
-REPRESENTATIONS = ("quaternion", "axis_angle", "euler", "6d", "9d", "10d")
-SIZES = {"quaternion": 4, "axis_angle": 3, "euler": 3, "6d": 6, "9d": 9, "10d": 10}
+REPRESENTATIONS = ("quaternion", "axis_angle", "euler", "6d", "9d", "10d", "fisher")
+SIZES = {"quaternion": 4, "axis_angle": 3, "euler": 3, "6d": 6, "9d": 9, "10d": 10, "fisher": 9}
 
 
 def gram_schmidt(raw: np.ndarray) -> np.ndarray:
@@ -63,6 +63,7 @@ ORACLES: dict[str, Callable[[np.ndarray], np.ndarray]] = {
     "6d": gram_schmidt,
     "9d": svd_projection,
     "10d": smallest_eigenvector_rotation,
+    "fisher": svd_projection,  # the mode of the matrix Fisher distribution of F = raw (row-major)
 }
 
 

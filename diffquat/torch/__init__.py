@@ -332,12 +332,13 @@ _reduced_second_moment = custom_derivative(
     _fi.reduced_second_moment,
     _fi.reduced_second_moment_tangent,
     _fi.reduced_second_moment_tangent,
-    frame_of_input=True,
+    captured=_fi.reduced_second_moment_taylor,
 )
 _reduced_log_normalizer = custom_derivative(
     _fi.reduced_log_normalizer,
     functools.partial(_fi.reduced_log_normalizer_tangent, moment=_reduced_second_moment),
     functools.partial(_fi.reduced_log_normalizer_cotangent, moment=_reduced_second_moment),
+    captured=_fi.reduced_log_normalizer_taylor,
 )
 
 
@@ -363,6 +364,12 @@ def matrix_fisher_mode(F: Tensor) -> Tensor:
 def bingham_nll(a: Tensor, q: Tensor, *, scalar_first: bool = True) -> Tensor:
     _dispatch.refuse_onnx("bingham_nll", "the Bingham normaliser")
     return _B(_fi.bingham_nll, a, q, scalar_first=scalar_first, normalizer=_reduced_log_normalizer)
+
+
+def _matrix_fisher_mean(F: Tensor) -> Tensor:
+    """``E[R]`` (..., 3, 3), differentiable (MatrixFisher.mean; not public: jax.grad / torch.func.grad
+    of matrix_fisher_log_normalizer give it on every backend)."""
+    return _B(_fi.matrix_fisher_mean, F, moment=_reduced_second_moment)  # type: ignore[no-any-return]
 
 
 def matrix_fisher_sample(

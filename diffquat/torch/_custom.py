@@ -50,12 +50,8 @@ def _linearised(forward: Callable[[Any, Tensor], Tensor], tangent: Formula, x: T
     y0 = forward(torch, x0)
     # y0 carries a zero tangent rather than none: torch 2.13's compiled vmap(jvp) fails on a matmul of
     # a batched tensor without a tangent by one with ("Tensor device mismatch"). 0 * sum(dx) is
-    # exactly 0 and broadcasts against y0 ((..., 3, 1) for a matrix, (..., 1) for a vector, summed
-    # down to the batch shape for a scalar per batch element).
-    zero = 0 * dx.sum(-1, keepdim=True)
-    while zero.ndim > y0.ndim:
-        zero = zero.sum(-1)
-    y0 = y0 + zero
+    # exactly 0 and broadcasts against y0 ((..., 3, 1) for a matrix, (..., 1) for a vector).
+    y0 = y0 + 0 * dx.sum(-1, keepdim=True)
     g = y0 + tangent(torch, x, y0, dx)
     return y0 + 0.5 * (tangent(torch, x, g, dx) + tangent(torch, x0, y0, dx))
 
@@ -65,7 +61,7 @@ def custom_derivative(
     tangent: Formula,
     cotangent: Formula,
     *,
-    frame_of_input: bool = False,
+    captured: Callable[[Any, Tensor, Tensor], Tensor] | None = None,
 ) -> Callable[[Any, Tensor], Tensor]:
     """``forward(xp, x) -> y`` with the derivatives ``tangent(xp, x, y, dx) -> dy`` (forward mode)
     and ``cotangent(xp, x, y, gy) -> gx`` (reverse mode). Both formulas are written with
@@ -74,12 +70,12 @@ def custom_derivative(
     ``generate_vmap_rule``: the forward and the formulas are batched torch code, so
     ``torch.func.vmap`` runs them as they are.
 
-    ``frame_of_input``: the formulas read ``x`` through its eigendecomposition (the Bingham maps of
-    ``diffquat._fisher``). Autodiff of ``eigh`` is NaN where eigenvalues repeat, even for a zero
-    cotangent, and the linearised form below differentiates the formulas in ``x`` with zero cotangents:
-    under capture they then see ``x`` detached. That changes no first or second derivative of the
-    linearised form (the terms it drops are multiplied by ``dx = 0``); its third derivatives are not
-    the map's either way. In eager mode the formulas see ``x`` itself."""
+    ``captured(xp, x0, dx)``: the map's own form for graph capture, in place of :func:`_linearised`,
+    given ``x0 = x.detach()`` and ``dx = x - x0`` (zero in value, the identity in derivative), whose
+    autodiff gives the map's derivatives at x (the Bingham maps of ``diffquat._fisher``: their Taylor
+    polynomials in dx, whose coefficients all come from one eigendecomposition of x0, where
+    linearising their rules would trace the eigendecomposition and the moments seven times, and
+    differentiate ``eigh``, which is NaN where eigenvalues repeat even for a zero cotangent)."""
 
     class Eager(torch.autograd.Function):
         """Returns ``(y, copy of x)``. The copy is what ``jvp`` reads x from: autograd calls ``jvp``
@@ -117,14 +113,12 @@ def custom_derivative(
 
     Eager.__name__ = Eager.__qualname__ = f"_{forward.__name__}_eager"
 
-    def captured_tangent(xp: Any, x: Tensor, y: Tensor, dx: Tensor) -> Tensor:
-        return tangent(xp, x.detach(), y, dx)
-
-    linear = captured_tangent if frame_of_input else tangent
-
     def bound(xp: Any, x: Tensor) -> Tensor:
         if torch.compiler.is_compiling() or is_tracing():  # type: ignore[no-untyped-call]
-            return _linearised(forward, linear, x)
+            if captured is not None:
+                x0 = x.detach()
+                return captured(torch, x0, x - x0)
+            return _linearised(forward, tangent, x)
         return Eager.apply(x)[0]  # type: ignore[no-untyped-call]
 
     bound.__name__ = forward.__name__  # the Backend validates arguments by this name
