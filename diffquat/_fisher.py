@@ -473,6 +473,7 @@ def _lead(xp: Any, a: Any, rank: int) -> Any:
     """``a`` with unit axes in front, to ``rank`` (jax may be set to refuse implicit rank promotion)."""
     return xp.reshape(a, (1,) * (rank - a.ndim) + tuple(a.shape))
 
+
 # The sampler makes the rows of a non-finite F NaN itself (its sample axes come first, the backend's
 # rule appends axes): see the end of matrix_fisher_sample.
 NONFINITE_BY_ARITHMETIC.add("matrix_fisher_sample")
