@@ -64,7 +64,7 @@ def representation_to_fisher(raw: ArrayLike) -> Array:
     """The matrix Fisher parameter F ``(..., 3, 3)`` of a ``"fisher"`` head's raw outputs ``(..., 9)``,
     row-major: the density ``exp(tr(F^T R)) / c(F)``, whose mode ``matrix_fisher_mode(F)`` is
     ``representation_to_matrix(raw, "fisher")``."""
-    return _heads.representation_to_fisher(jnp, jnp.asarray(raw))  # type: ignore[no-any-return]
+    return _heads.representation_to_fisher(jnp, jnp.asarray(raw))
 
 
 def init_rotation_head(

@@ -369,7 +369,7 @@ def bingham_nll(a: Tensor, q: Tensor, *, scalar_first: bool = True) -> Tensor:
 def _matrix_fisher_mean(F: Tensor) -> Tensor:
     """``E[R]`` (..., 3, 3), differentiable (MatrixFisher.mean; not public: jax.grad / torch.func.grad
     of matrix_fisher_log_normalizer give it on every backend)."""
-    return _B(_fi.matrix_fisher_mean, F, moment=_reduced_second_moment)  # type: ignore[no-any-return]
+    return _B(_fi.matrix_fisher_mean, F, moment=_reduced_second_moment)
 
 
 def matrix_fisher_sample(
@@ -397,7 +397,7 @@ def matrix_fisher_sample(
         options: dict[str, Any] = {"generator": generator, "dtype": compute, "device": checked.device}
         return torch.randn((*size, 4), **options), torch.rand(size, **options)
 
-    return _B(_fi.matrix_fisher_sample, checked, draw=draw)  # type: ignore[no-any-return]
+    return _B(_fi.matrix_fisher_sample, checked, draw=draw)
 
 
 # torch.fx.symbolic_trace runs Python on Proxy objects, which have no shape or dtype to validate: it

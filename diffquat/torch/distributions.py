@@ -66,7 +66,7 @@ class MatrixFisher(Distribution):
     probability measure: 0 for the uniform distribution, negative otherwise.
     """
 
-    arg_constraints = {"F": constraints.independent(constraints.real, 2)}  # noqa: RUF012
+    arg_constraints = {"F": constraints.independent(constraints.real, 2)}  # type: ignore[no-untyped-call]  # noqa: RUF012
     support = special_orthogonal
     has_rsample = False
 
@@ -78,7 +78,7 @@ class MatrixFisher(Distribution):
         super().__init__(F.shape[:-2], torch.Size((3, 3)), validate_args=validate_args)
 
     def expand(self, batch_shape: Any, _instance: Any = None) -> MatrixFisher:
-        new = self._get_checked_instance(MatrixFisher, _instance)
+        new = self._get_checked_instance(MatrixFisher, _instance)  # type: ignore[no-untyped-call]
         batch_shape = torch.Size(batch_shape)
         new.F = self.F.expand((*batch_shape, 3, 3))
         super(MatrixFisher, new).__init__(batch_shape, self.event_shape, validate_args=False)

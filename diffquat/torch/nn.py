@@ -68,7 +68,7 @@ def representation_to_fisher(raw: Tensor) -> Tensor:
     """The matrix Fisher parameter F ``(..., 3, 3)`` of a ``"fisher"`` head's raw outputs ``(..., 9)``,
     row-major: the density ``exp(tr(F^T R)) / c(F)``, whose mode ``matrix_fisher_mode(F)`` is
     ``representation_to_matrix(raw, "fisher")``."""
-    return _heads.representation_to_fisher(torch, raw)  # type: ignore[no-any-return]
+    return _heads.representation_to_fisher(torch, raw)
 
 
 # Leaves of torch.fx.symbolic_trace, as the functions of diffquat.torch (see there).
