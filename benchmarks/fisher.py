@@ -12,8 +12,9 @@ whose backward takes three more trapezoid rules (``d log c / ds_k``, by cyclic s
 
 Accuracy: both against the mpmath evaluation of the Bessel integral the tests use
 (``tests/cases.py::reference_log_c``), in nats (absolute error of log c), float64 and float32.
-Timing: float32 on this machine's CPU (torch eager and ``jax.jit``), medians of repeated calls after
-a warm-up; the baseline gets an F and does its own SVD, as diffquat does its own eigendecomposition.
+Timing: float32, torch eager on ``--device`` (default cpu; ``cuda`` on a GPU machine) and ``jax.jit``
+on jax's default backend, medians of repeated calls after a warm-up (torch calls synchronised); the
+baseline gets an F and does its own SVD, as diffquat does its own eigendecomposition.
 """
 
 from __future__ import annotations
@@ -157,11 +158,13 @@ def accuracy(magnitudes: list[float]) -> list[dict[str, Any]]:
 
 def _time(call: Callable[[], Any], repeats: int, min_s: float) -> float:
     call()  # warm-up (and compilation)
+    sync = torch.cuda.synchronize if torch.cuda.is_available() else (lambda: None)
     samples = []
     for _ in range(repeats):
         n, start = 0, time.perf_counter()
         while True:
             call()
+            sync()
             n += 1
             elapsed = time.perf_counter() - start
             if elapsed >= min_s:
@@ -177,7 +180,7 @@ def _inputs(n: int) -> np.ndarray:
     return np.einsum("nij,nj,nkj->nik", rotations[:n], s, rotations[n:]).astype(np.float32)
 
 
-def timings(sizes: tuple[int, ...], repeats: int, min_s: float) -> dict[str, dict[str, float]]:
+def timings(sizes: tuple[int, ...], repeats: int, min_s: float, device: str) -> dict[str, dict[str, float]]:
     """Seconds per call, float32, per method and N (rows: methods; N: columns)."""
     import jax
     import jax.numpy as jnp
@@ -210,7 +213,7 @@ def timings(sizes: tuple[int, ...], repeats: int, min_s: float) -> dict[str, dic
     key = jax.random.key(0)
     for n in sizes:
         f = _inputs(n)
-        t, j = torch.tensor(f), jnp.asarray(f)
+        t, j = torch.tensor(f, device=device), jnp.asarray(f)
         sample_jit = jax.jit(functools.partial(djax.matrix_fisher_sample, shape=n))
         calls = {
             "value: diffquat torch eager": no_grad(dq.matrix_fisher_log_normalizer, t),
@@ -222,7 +225,7 @@ def timings(sizes: tuple[int, ...], repeats: int, min_s: float) -> dict[str, dic
                 lambda x: grad_jit(x)[1].block_until_ready(), j
             ),
             "sample n rotations: diffquat torch eager": functools.partial(
-                dq.matrix_fisher_sample, torch.tensor(one), n
+                dq.matrix_fisher_sample, torch.tensor(one, device=device), n
             ),
             "sample n rotations: diffquat jax.jit": functools.partial(
                 lambda fn: fn(jnp.asarray(one), key=key).block_until_ready(), sample_jit
@@ -268,7 +271,7 @@ def render(results: dict[str, Any]) -> str:
     sizes = results["sizes"]
     lines += [
         "",
-        "## Time per call (float32, CPU)",
+        f"## Time per call (float32; torch on {results['device']}, jax on {results['jax_backend']})",
         "",
         "| method | " + " | ".join(f"N = {n}" for n in sizes) + " |",
         "|---|" + "---|" * len(sizes),
@@ -283,11 +286,15 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="few sizes and magnitudes: seconds")
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent)
+    parser.add_argument("--device", default="cpu", help="torch device of the timings (cpu, cuda)")
+    parser.add_argument("--threads", type=int, help="torch's CPU threads (default: torch's choice)")
     args = parser.parse_args(argv)
+    if args.threads:
+        torch.set_num_threads(args.threads)
     import jax
 
-    magnitudes = [1.0, 100.0] if args.quick else [1e-3, 1.0, 10.0, 100.0, 1e3, 1e4, 1e5]
-    sizes = (1, 64) if args.quick else (1, 64, 4096, 65536)
+    magnitudes = [100.0] if args.quick else [1e-3, 1.0, 10.0, 100.0, 1e3, 1e4, 1e5]
+    sizes = (64,) if args.quick else (1, 64, 4096, 65536)
     results = {
         "quick": args.quick,
         "machine": f"{platform.processor() or platform.machine()} ({platform.system()})",
@@ -295,7 +302,13 @@ def main(argv: list[str] | None = None) -> None:
         "jax": jax.__version__,
         "sizes": list(sizes),
         "accuracy": accuracy(magnitudes),
-        "timings": timings(sizes, repeats=3 if args.quick else 7, min_s=0.01 if args.quick else 0.2),
+        "device": torch.cuda.get_device_name()
+        if args.device == "cuda"
+        else f"cpu, {torch.get_num_threads()} threads",
+        "jax_backend": jax.default_backend(),
+        "timings": timings(
+            sizes, repeats=2 if args.quick else 7, min_s=0.002 if args.quick else 0.2, device=args.device
+        ),
     }
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "fisher.json").write_text(json.dumps(results, indent=1))

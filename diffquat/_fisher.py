@@ -18,9 +18,9 @@ det F < 0), and conversely ``s_i = (b_3 + b_{3-i}) / 2`` for a traceless X.
 **The normaliser** ``log c(X) - tr(X)/4`` (the part that does not follow from ``c(X + tI) = e^t c(X)``):
 
 - Small eigenvalues (``max_a |b_a - mean(b)| <= SERIES_RADIUS``): the power series of ``c``, i.e.
-  ``1F1(1/2; 2; X)``, from ``prod_a (1 - b_a x)^(-1/2) = sum_K H_K x^K`` and ``c = sum_K H_K / (K+1)!``
-  with ``K H_K = 1/2 sum_n p_n H_{K-n}`` (``p_n`` the power sums of the centred eigenvalues, p_1 = 0). The
-  terms K = 0, 1 are 1 and 0 exactly, so ``c - 1`` and with it ``log c`` (which is ``|b|^2 / 24`` at
+  ``1F1(1/2; 2; X)``: ``c = sum_K H_K / (K+1)!`` with ``prod_a (1 - b_a x)^(-1/2) = sum_K H_K x^K``
+  for the centred eigenvalues (the Dirichlet(1/2, 1/2, 1/2, 1/2) moments of ``q_a^2``). The terms
+  K = 0, 1 are 1 and ``sum(b)/4 = 0`` exactly, so ``c - 1`` and with it ``log c`` (``|b|^2 / 24`` at
   small b) keep their relative precision down to F = 0, where ``e^{b_3} J`` below would cancel.
 - Otherwise, a Laplace inversion. ``integral_{R^4} exp(-t|g|^2 - g^T L g) dg`` in polar coordinates
   shows that ``rho J(rho L)`` has the Laplace transform ``prod_a (t + l_a)^(-1/2)``, where
@@ -160,11 +160,8 @@ def _talbot(xp: Any, lam: Any, order: int) -> tuple[Any, Any, Any]:
     pair = weight[..., :, None] * inv[..., None, :]
     angle = phase[..., None, None] - arg[..., :, None] - arg[..., None, :]
     moment = xp.sum(pair * xp.sin(angle), axis=-3) / j[..., None, None]
-    eye = [[1.0 if a == c else 0.0 for c in range(4)] for a in range(4)]
-    factor = xp.reshape(
-        _constant(xp, [0.5 * v + 0.25 for row in eye for v in row], lam, 1), (*(1,) * (lam.ndim - 1), 4, 4)
-    )
-    moment = moment * factor
+    factor = [0.75 if a == c else 0.25 for a in range(4) for c in range(4)]
+    moment = moment * xp.reshape(_constant(xp, factor, lam, 1), (*(1,) * (lam.ndim - 1), 4, 4))
     # The mode's row: E[q_a^2 q_3^2] = m_a - sum_{c<3} E[q_a^2 q_c^2], E[q_3^4] = m_3 - sum_{a<3} that.
     block = moment[..., :3, :3]
     side = m[..., :3] - xp.sum(block, axis=-1)
@@ -398,8 +395,10 @@ def matrix_fisher_log_normalizer(xp: Any, F: Any, *, normalizer: Normalizer = re
     V^T``), in closed form from the moments of the equivalent Bingham distribution; ``E[R] = 0`` at F = 0.
     Second derivatives are the covariance of R, also in closed form: both are exact wherever F's
     singular values repeat (F = 0, F a multiple of a rotation). Third and higher derivatives
-    differentiate the eigendecomposition inside that rule: exact where the eigenvalues are distinct,
-    NaN where they repeat (torch under graph capture: not provided).
+    differentiate the eigendecomposition inside that rule: exact where the eigenvalues of K(F) are
+    distinct, not finite where they repeat. Under torch graph capture (``torch.compile``,
+    ``torch.jit.trace``, ``torch.export``) the map is its second-order Taylor polynomial about the
+    input, whose third derivatives are 0.
     """
     return normalizer(xp, davenport(xp, F))
 

@@ -386,3 +386,23 @@ def test_bingham_nll_is_the_matrix_fisher_nll(backend: Backend) -> None:
     uniform = Rotation.random(400_000, random_state=8).as_quat(scalar_first=True)
     density = np.exp(-backend.to_numpy(dq.bingham_nll(arr(a[1]), arr(uniform))))
     assert abs(density.mean() - 1) <= SIGMAS * density.std() / math.sqrt(len(density))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_cuda_matches_the_cpu() -> None:
+    """On a GPU (cuSOLVER's eigh, the constants placed on the device): the normaliser, its gradient and
+    the Bingham NLL equal the CPU's to rounding, and the sampler draws rotations on the device."""
+    f = torch.tensor(derivative_points())
+    for dtype, tol in ((torch.float64, 1e-10), (torch.float32, 1e-3)):
+        cpu = f.to(dtype).requires_grad_(True)
+        gpu = f.to(dtype).cuda().requires_grad_(True)
+        values = [dtorch.matrix_fisher_log_normalizer(x) for x in (cpu, gpu)]
+        grads = [torch.autograd.grad(v.sum(), x)[0] for v, x in zip(values, (cpu, gpu), strict=True)]
+        torch.testing.assert_close(values[1].cpu(), values[0], rtol=tol, atol=tol)
+        torch.testing.assert_close(grads[1].cpu(), grads[0], rtol=tol, atol=tol)
+        a, q = torch.randn(8, 10, dtype=dtype), torch.randn(8, 4, dtype=dtype)
+        torch.testing.assert_close(dtorch.bingham_nll(a.cuda(), q.cuda()).cpu(), dtorch.bingham_nll(a, q))
+        r = dtorch.matrix_fisher_sample(gpu.detach(), 3)
+        assert r.device == gpu.device and r.dtype == dtype
+        eye = torch.eye(3, dtype=dtype, device=r.device)
+        assert float((r.mT @ r - eye).abs().max()) < 10 * torch.finfo(dtype).eps
