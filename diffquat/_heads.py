@@ -20,6 +20,9 @@ REPRESENTATIONS: dict[str, int] = {
     "6d": 6,  # the first two columns, Gram-Schmidt (Zhou et al., CVPR 2019)
     "9d": 9,  # any 3x3 matrix, row-major, projected by SVD onto SO(3) (Levinson et al., NeurIPS 2020)
     "10d": 10,  # upper triangle of a symmetric 4x4 matrix (Peretroukhin et al., RSS 2020)
+    # the parameter F of a matrix Fisher distribution, row-major (Mohlin et al., NeurIPS 2020): the
+    # head's rotation is its mode (the 9D map), and representation_to_fisher gives F for the NLL
+    "fisher": 9,
 }
 EULER_CONVENTION = "XYZ"
 
@@ -58,4 +61,15 @@ def representation_to_matrix(xp: Any, dq: Any, raw: Any, representation: str) ->
         return dq.rotation_6d_to_matrix(raw)
     if representation == "9d":
         return dq.special_procrustes(xp.reshape(raw, (*shape[:-1], 3, 3)))
+    if representation == "fisher":
+        return dq.matrix_fisher_mode(representation_to_fisher(xp, raw))
     return dq.quaternion_to_matrix(dq.symmetric_matrix_to_quaternion(raw))
+
+
+def representation_to_fisher(xp: Any, raw: Any) -> Any:
+    """The matrix Fisher parameter F ``(..., 3, 3)`` of a ``"fisher"`` head's raw outputs ``(..., 9)``
+    (row-major): the density ``exp(tr(F^T R)) / c(F)``, whose mode is the head's rotation."""
+    shape = tuple(raw.shape)
+    if len(shape) < 1 or shape[-1] != REPRESENTATIONS["fisher"]:
+        raise ValueError(f"representation_to_fisher: expected raw of shape (..., 9), got shape {shape}")
+    return xp.reshape(raw, (*shape[:-1], 3, 3))

@@ -22,9 +22,10 @@ rotating frame, ``"XYZ"``: ``R = R_X(a) R_Y(b) R_Z(c)``), lower case extrinsic (
 ``"xyz"``: ``R = R_z(c) R_y(b) R_x(a)``); in each case the 6 Tait-Bryan sequences (three different
 axes) and the 6 proper ones (first axis = third)."""
 
-Representation: TypeAlias = Literal["quaternion", "axis_angle", "euler", "6d", "9d", "10d"]
-"""What a rotation head regresses (``diffquat.torch.nn``, ``diffquat.jax.nn``), with 4, 3, 3, 6, 9 and
-10 raw outputs."""
+Representation: TypeAlias = Literal["quaternion", "axis_angle", "euler", "6d", "9d", "10d", "fisher"]
+"""What a rotation head regresses (``diffquat.torch.nn``, ``diffquat.jax.nn``), with 4, 3, 3, 6, 9, 10
+and 9 raw outputs (``"fisher"``: the parameter F of a matrix Fisher distribution, whose mode is the
+rotation)."""
 
 Rotation6DLayout: TypeAlias = Literal["columns", "rows"]
 """How a 6D vector holds its two 3-vectors: ``"columns"`` (Zhou et al.'s paper, diffquat's default),

@@ -25,7 +25,7 @@ from mkdocs.structure.files import File, Files
 
 ROOT = Path(__file__).resolve().parents[1]
 # Outside docs/, published at the same paths as in the repository (so their relative links hold).
-EXTERNAL = ["notebooks/*.ipynb", "notebooks/figures/*.png", "benchmarks/RESULTS.md", "benchmarks/*.png"]
+EXTERNAL = ["notebooks/*.ipynb", "notebooks/figures/*.png", "benchmarks/*.md", "benchmarks/*.png"]
 MARKER = re.compile(r"<!-- api (?P<module>[\w.]+)(?P<shallow> shallow)? -->")
 
 

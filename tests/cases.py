@@ -8,12 +8,15 @@ implementation, wherever scipy has the operation.
 
 from __future__ import annotations
 
+import functools
 import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+import mpmath
 import numpy as np
+from scipy import integrate, special
 from scipy.spatial.transform import Rotation, Slerp
 
 DTYPES = ("float64", "float32", "float16", "bfloat16")
@@ -220,12 +223,17 @@ class Op:
         (default: reorder the last axis; the 10D representation permutes its matrix instead).
     relative: errors are measured relative to the largest entry of each expected output element (for
         ops whose output scales with the norm of the input, e.g. ``quaternion_invert`` at 1e20).
+    error_scale: float64 inputs -> the size, per batch element, that errors are measured against
+        (for scalar outputs whose size follows the input's, e.g. a log normaliser at |F| = 1e20).
     periodic: the outputs are angles, compared modulo 2 pi (an angle of pi may come back as -pi).
-    variant_of: the label of the row this one is a keyword variant of, whose code path it shares but
-        for a static choice (the 6D layout: the axis the result is stacked on). Values, properties,
-        errors, per-case gradients, captures and exports run on it; the compile-heavy checks of the
-        derivatives (jax ``check_grads``, ``torch.compile``, compiled forward mode, jit/vmap/grad:
-        tens of seconds per row) run on the base row only (``base_rows``).
+    variant_of: the label of the row this one is a variant of, whose code path it shares: a keyword
+        variant (the 6D layout: the axis the result is stacked on, a static choice), or another name
+        of the same map (``so3_exp`` is ``axis_angle_to_matrix``, ``matrix_fisher_mode`` is
+        ``special_procrustes``: one core function; tests/test_api.py checks that the two names give
+        the same values). Values, properties, errors, per-case gradients against finite differences,
+        captures and exports run on it; the compile-heavy checks of the derivatives (jax
+        ``check_grads``, ``torch.compile``, compiled forward mode, jit/vmap/grad: tens of seconds per
+        row) run on the base row only (``base_rows``), where the same map is checked.
     """
 
     name: str
@@ -247,6 +255,7 @@ class Op:
     finite_gradient: Callable[[Case, str], bool] = lambda case, dtype: True
     to_scalar_last: Callable[[np.ndarray], np.ndarray] = lambda x: x[..., [1, 2, 3, 0]]
     relative: bool = False
+    error_scale: Callable[..., np.ndarray] | None = None
     periodic: bool = False
     variant_of: str = ""
 
@@ -945,6 +954,7 @@ def _lie_ops() -> list[Op]:
             quaternion_args=(),
             output="matrix",
             scalar_first=False,
+            variant_of="axis_angle_to_matrix",  # the same core function
         ),
         # As matrix_to_axis_angle: v or -v at exact half-turns, where log jumps.
         vectors(
@@ -953,6 +963,7 @@ def _lie_ops() -> list[Op]:
             oracle_matrix_to_axis_angle,
             up_to_sign=True,
             smooth_at=_except(*AT_HALF_TURNS),
+            variant_of="matrix_to_axis_angle",  # the same core function
         ),
         vectors("so3_left_jacobian", _rotvec, oracle_left_jacobian),
         vectors("so3_right_jacobian", _rotvec, oracle_right_jacobian),
@@ -1001,10 +1012,179 @@ def _lie_ops() -> list[Op]:
 
 OPS += _lie_ops()
 
+
+# ---------------------------------------------------------------------------------------------------
+# The matrix Fisher distribution and the Bingham NLL of the 10D head. The oracle of the normaliser is
+# the one-dimensional Bessel integral (T. Lee, "Bayesian attitude estimation with the matrix Fisher
+# distribution on SO(3)", IEEE TAC 2018; Mohlin et al., NeurIPS 2020) by scipy's adaptive quadrature,
+# with the peak exp(s1 + s2 + s3) factored out and break points at the widths of the integrand's
+# features (1/l near each end); where the singular values are small, so that log c ~ |s|^2 / 6 would
+# cancel in float64, mpmath at 30 digits. Against mpmath over [1e-3, 1e5]^3 (tests/test_fisher.py)
+# the quadrature is within 1e-13. diffquat computes it another way (Laplace inversion, power series).
+
+
+def proper_singular_values(matrix: np.ndarray) -> np.ndarray:
+    """``(..., 3)``: ``s1 >= s2 >= |s3|`` with ``F = U diag(s) V^T``, U and V rotations (s3 < 0 where
+    det F < 0)."""
+    u, s, vh = np.linalg.svd(matrix)
+    s = s.copy()
+    s[..., 2] *= np.where(np.linalg.det(u) * np.linalg.det(vh) < 0, -1.0, 1.0)
+    return s
+
+
+@functools.cache
+def oracle_log_c(s1: float, s2: float, s3: float) -> float:
+    """log c for proper singular values s1 >= s2 >= |s3|, float64 (see above)."""
+    if abs(s1) + abs(s2) + abs(s3) < 0.05:
+        with mpmath.workdps(30):
+            a, b, c = (mpmath.mpf(x) for x in (s1, s2, s3))
+
+            def excess(u: Any) -> Any:  # the integrand less its value 1/2 at S = 0
+                i1 = mpmath.besseli(0, (a - b) * (1 - u) / 2)
+                return i1 * mpmath.besseli(0, (a + b) * (1 + u) / 2) * mpmath.exp(c * u) / 2 - 0.5
+
+            return float(mpmath.log1p(mpmath.quad(excess, [-1, 1])))
+    # c = e^{s1+s2+s3} J with J = int_0^1 e^{-l2 v} I0e(l1 (1 - v)/2) I0e((l3 - l2) v/2) dv, where
+    # l1 = 2 (s2 + s3) <= l2 = 2 (s1 + s3) <= l3 = 2 (s1 + s2) (the substitution v = (1 - u)/2 in the
+    # form with k = 1; I0e(x) = e^{-x} I0(x))
+    l1, l2, l3 = 2 * (s2 + s3), 2 * (s1 + s3), 2 * (s1 + s2)
+
+    def integrand(v: float) -> float:
+        return float(np.exp(-l2 * v) * special.i0e(l1 * (1 - v) / 2) * special.i0e((l3 - l2) * v / 2))
+
+    points = {k / w for w in (l2, l3 - l2) for k in (1.0, 10.0, 100.0) if w > 0 and 1e-300 < k / w < 1}
+    points |= {1 - k / l1 for k in (1.0, 10.0, 100.0) if l1 > 0 and 1e-15 < k / l1 < 1}
+    with warnings.catch_warnings():  # at 1e20 the last digits are rounding: quad says so, harmlessly
+        warnings.simplefilter("ignore", integrate.IntegrationWarning)
+        j = integrate.quad(integrand, 0, 1, points=sorted(points) or None, epsabs=0, epsrel=1e-13, limit=500)
+    return float(s1 + s2 + s3 + np.log(j[0]))
+
+
+@functools.cache
+def reference_log_c(s1: float, s2: float, s3: float) -> float:
+    """log c for proper singular values ``s1 >= s2 >= |s3|`` by mpmath (20 digits) from the 1D Bessel
+    integral (T. Lee, IEEE TAC 2018, eq. (21); Mohlin et al., NeurIPS 2020, eq. (8))
+
+        c = int_{-1}^{1} 1/2 I0((s1 - s2)(1 - u)/2) I0((s1 + s2)(1 + u)/2) exp(s3 u) du,
+
+    with the peak exp(s1 + s2 + s3) taken out and v = 1 - u: the integrand is then
+    ``1/2 I0e(a (2 - v)) I0e(b v) exp(-(s2 + s3) v)`` for ``a = (s1 + s2)/2``, ``b = (s1 - s2)/2``, whose
+    features near v = 0 have widths 1/(s2 + s3) and 1/b and near v = 2 the width 1/a: mpmath's
+    tanh-sinh rule is given break points there. (Derivation: with t = w^2 + z^2, uniform on [0, 1] for
+    a uniform unit quaternion, and the angles in the (w, z) and (x, y) planes uniform,
+    ``tr(S R) = s3 (2t - 1) + t (s1 + s2) cos 2 phi + (1 - t)(s1 - s2) cos 2 psi``; the angle averages
+    are I0. test_reference_matches_monte_carlo checks the formula itself.)"""
+    with mpmath.workdps(20):
+        s1m, s2m, s3m = (mpmath.mpf(x) for x in (s1, s2, s3))
+        a, b, r = (s1m + s2m) / 2, (s1m - s2m) / 2, s2m + s3m
+
+        def integrand(v: Any) -> Any:
+            x1, x2 = a * (2 - v), b * v
+            return mpmath.besseli(0, x1) * mpmath.besseli(0, x2) * mpmath.exp(-x1 - x2 - r * v) / 2
+
+        points = {mpmath.mpf(0), mpmath.mpf(1), mpmath.mpf(2)}
+        for width, end in ((r, 0), (b, 0), (a, 2)):
+            for k in (1, 10, 100):
+                if width > 0 and k / width < 1:
+                    points.add(abs(end - k / width))
+        j = mpmath.quad(integrand, sorted(points))
+        # log c = s1 + s2 + s3 + log J, summed in 20 digits: at small s the two nearly cancel
+        return float(s1m + s2m + s3m + mpmath.log(j))
+
+
+def _each(values: np.ndarray, fn: Callable[..., float]) -> np.ndarray:
+    flat = values.reshape(-1, values.shape[-1])
+    return np.array([fn(*(float(x) for x in row)) for row in flat]).reshape(values.shape[:-1])
+
+
+def oracle_matrix_fisher_log_normalizer(matrix: np.ndarray) -> np.ndarray:
+    return _each(proper_singular_values(matrix), oracle_log_c)
+
+
+def oracle_matrix_fisher_nll(matrix: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    return oracle_matrix_fisher_log_normalizer(matrix) - np.sum(matrix * rotation, axis=(-2, -1))
+
+
+def bingham_log_normalizer_by_matrix_fisher(a: np.ndarray) -> np.ndarray:
+    """log E_q[exp(-q^T A q)] through the matrix Fisher normaliser: with b = eig(-A) descending and
+    b_bar their mean, ``log c_B = b_bar + log c(s)``, ``s_i = (b_0 + b_i)/2 - b_bar`` (the proper singular
+    values of the F with K(F) = b_bar I - A)."""
+    b = -np.linalg.eigvalsh(_sym4(a))  # descending: eigvalsh is ascending
+    mean = b.mean(axis=-1, keepdims=True)
+    s = (b[..., :1] + b[..., 1:]) / 2 - mean
+    return mean[..., 0] + _each(s, oracle_log_c)
+
+
+def oracle_bingham_nll(a: np.ndarray, q: np.ndarray) -> np.ndarray:
+    batch = np.broadcast_shapes(a.shape[:-1], q.shape[:-1])
+    a, q = np.broadcast_to(a, (*batch, 10)), np.broadcast_to(q, (*batch, 4))
+    norm = np.linalg.norm(q, axis=-1, keepdims=True)
+    u = np.where(norm > 0, q / np.where(norm > 0, norm, 1.0), [1.0, 0.0, 0.0, 0.0])
+    energy = np.einsum("...a,...ab,...b->...", u, _sym4(a), u)
+    return energy + bingham_log_normalizer_by_matrix_fisher(a)
+
+
+# F = |q| R(q) for the log normaliser: all three singular values equal (where a library SVD derivative
+# divides by zero, and the zero case gives F = 0, where E[R] = 0); for the NLL, |q| R(q) diag(2, 1, -0.5):
+# distinct singular values and det < 0. Both smooth everywhere: finite differences must agree at every
+# case, the zero matrix included. Errors are measured against the size of the terms (at least 1).
+_FISHER_FACTOR = np.diag([2.0, 1.0, -0.5])
+
+
+def _fisher_scale(matrix: np.ndarray, *rest: np.ndarray) -> np.ndarray:
+    return np.maximum(2.0 * np.abs(np.linalg.svd(matrix, compute_uv=False)).sum(axis=-1), 1.0)
+
+
+OPS += [
+    Op(
+        "matrix_fisher_log_normalizer",
+        lambda q: (_scale(q)[..., None, None] * oracle_quaternion_to_matrix(q),),
+        oracle_matrix_fisher_log_normalizer,
+        quaternion_args=(),
+        output="other",
+        scalar_first=False,
+        smooth_at=lambda case: True,
+        error_scale=_fisher_scale,
+    ),
+    Op(
+        "matrix_fisher_nll",
+        lambda q: (
+            _scale(q)[..., None, None] * (oracle_quaternion_to_matrix(q) @ _FISHER_FACTOR),
+            oracle_quaternion_to_matrix(_companion(q, seed=11)),
+        ),
+        oracle_matrix_fisher_nll,
+        quaternion_args=(),
+        output="other",
+        scalar_first=False,
+        smooth_at=lambda case: True,
+        error_scale=_fisher_scale,
+    ),
+    Op(
+        "matrix_fisher_mode",
+        _procrustes_inputs(_FISHER_FACTOR),
+        oracle_special_procrustes,
+        quaternion_args=(),
+        output="matrix",
+        scalar_first=False,
+        # special_procrustes itself (one core function): the compile-heavy checks run on its rows
+        variant_of="special_procrustes",
+    ),
+    Op(
+        "bingham_nll",
+        lambda q: (*_a10(q), _companion(q, seed=11)),
+        oracle_bingham_nll,
+        quaternion_args=(0, 1),
+        output="other",
+        smooth_at=lambda case: True,
+        to_scalar_last=lambda x: a10_to_scalar_last(x) if x.shape[-1] == 10 else x[..., [1, 2, 3, 0]],
+        error_scale=lambda a, q: np.maximum(2.0 * np.abs(a).sum(axis=-1), 1.0),
+    ),
+]
+
 OPS_BY_NAME = {op.id: op for op in OPS}
 
 # Public names that are not rows of the table, with the test that covers each.
-NOT_IN_TABLE = {"random_quaternions": "tests/test_random.py"}
+NOT_IN_TABLE = {"random_quaternions": "tests/test_random.py", "matrix_fisher_sample": "tests/test_fisher.py"}
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -13,10 +13,10 @@ from types import ModuleType
 
 import numpy as np
 import pytest
-from cases import NOT_IN_TABLE, OPS, OPS_BY_NAME, Op, only, uniform_quaternions
+from cases import CASES_BY_NAME, NOT_IN_TABLE, OPS, OPS_BY_NAME, Op, only, uniform_quaternions
 from conftest import BACKENDS, Backend
 
-import diffquat.numpy  # noqa: F401  (importing a backend registers every op's shapes)
+import diffquat.numpy as dqn  # importing a backend registers every op's shapes
 from diffquat import _types
 from diffquat._backend import format_shape
 from diffquat._core import SHAPES
@@ -28,8 +28,10 @@ def concrete(trailing: tuple[int, ...]) -> tuple[int, ...]:
     return tuple(N_POINTS if n == -1 else n for n in trailing)
 
 
-# The one place where the backends' signatures may differ: the random source is the framework's own.
+# The one place where the backends' signatures may differ: the random source is the framework's own
+# (and the device of the random functions that make their result from nothing but a shape).
 RANDOM_SOURCE = {"numpy": {"rng"}, "torch": {"generator", "device"}, "jax": {"key"}}
+RANDOM_FUNCTIONS = ("random_quaternions", "matrix_fisher_sample")
 # A backend's own switches, public but no rotation function: jax's C-kernel switch (tests/test_jax_deploy.py).
 SWITCHES = {"numpy": set(), "torch": set(), "jax": {"cpu_kernels"}}
 
@@ -52,7 +54,7 @@ def test_backend_exports_the_same_names_and_signatures_as_numpy(name: str) -> No
     assert sorted(other) == sorted(reference)
     for fn, sig in reference.items():
         params, theirs = dict(sig.parameters), dict(other[fn].parameters)
-        if fn == "random_quaternions":
+        if fn in RANDOM_FUNCTIONS:
             params = {k: v for k, v in params.items() if k not in RANDOM_SOURCE["numpy"] | {"dtype"}}
             theirs = {k: v for k, v in theirs.items() if k not in RANDOM_SOURCE[name] | {"dtype"}}
         assert [(p.name, p.kind, p.default) for p in params.values()] == [
@@ -63,9 +65,17 @@ def test_backend_exports_the_same_names_and_signatures_as_numpy(name: str) -> No
 def test_every_public_function_is_in_the_test_table() -> None:
     exported = set(public("numpy"))
     assert exported == {op.name for op in OPS} | set(NOT_IN_TABLE)
-    # a keyword variant names its base row, a row of the same function
+    # a variant names its base row: a row of the same function, or of the function whose map it is
+    # under another name, which then gives the same values on the variant's inputs
     variants = [op for op in OPS if op.variant_of]
-    assert all(OPS_BY_NAME[op.variant_of].name == op.name for op in variants) and variants
+    assert variants
+    for op in variants:
+        base = OPS_BY_NAME[op.variant_of]
+        if base.name != op.name:
+            xs = op.inputs(CASES_BY_NAME["random"].quaternions("float64"))
+            np.testing.assert_array_equal(
+                getattr(dqn, op.name)(*xs, **op.kwargs), getattr(dqn, base.name)(*xs, **op.kwargs)
+            )
 
 
 def test_every_public_function_is_documented_with_its_shapes(backend: Backend) -> None:

@@ -128,3 +128,23 @@ def test_gpu_benchmark_runs_and_renders_into_results(tmp_path: Path) -> None:
     assert "### Kernels per diffquat torch eager call" in text
     assert "still to be measured" not in text
     assert (tmp_path / "gpu.png").stat().st_size > 0
+
+
+def test_quick_fisher_benchmark_writes_results(tmp_path: Path) -> None:
+    """``benchmarks.fisher --quick`` writes its accuracy and timing tables; the accuracy rows are
+    deterministic: the 512-node trapezoid baseline is off by ~0.05 nats at S = 100 I (the issue's
+    figure), diffquat within 1e-9."""
+    import json
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    subprocess.run(
+        [sys.executable, "-m", "benchmarks.fisher", "--quick", "--out", str(tmp_path)],
+        cwd=ROOT, env=env, check=True, capture_output=True, timeout=600,
+    )  # fmt: skip
+    text = (tmp_path / "FISHER.md").read_text()
+    for fragment in ("## Accuracy", "## Time per call", "| value + gradient: diffquat torch eager |"):
+        assert fragment in text
+    results = json.loads((tmp_path / "fisher.json").read_text())
+    row = next(r for r in results["accuracy"] if r["pattern"] == "(s, s, s)" and r["s"] == 100.0)
+    assert 0.04 < row["trapezoid float64"] < 0.06
+    assert row["diffquat float64"] < 1e-9

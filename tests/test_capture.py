@@ -213,7 +213,7 @@ def test_onnx_export_of_heads_runs_in_onnxruntime(representation: str, dynamo: b
 
 
 @pytest.mark.parametrize("dynamo", [False, True], ids=["torchscript", "dynamo"])
-@pytest.mark.parametrize("representation", ["9d", "10d"])
+@pytest.mark.parametrize("representation", ["9d", "10d", "fisher"])
 def test_onnx_export_of_svd_heads_names_the_representation(representation: str, dynamo: bool) -> None:
     head = _head(representation).float()
     # The dynamo exporter reports the exception of its first failed pass inside its own error.

@@ -93,6 +93,10 @@ def oracle_error(op: Op, received: list[np.ndarray], actual: np.ndarray) -> floa
         scale = np.abs(expected).max(axis=-1, keepdims=True)
         scale = np.where(scale > 0, scale, 1.0)
         actual, expected = actual / scale, expected / scale
+    if op.error_scale is not None:
+        scale = op.error_scale(*(x.astype(np.float64) for x in received))
+        scale = np.reshape(scale, scale.shape + (1,) * (expected.ndim - scale.ndim))
+        actual, expected = actual / scale, expected / scale
     error = np.abs(actual - expected).max(axis=-1)
     if op.up_to_sign:
         error = np.minimum(error, np.abs(actual + expected).max(axis=-1))

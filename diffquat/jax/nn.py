@@ -12,7 +12,12 @@ that optax, ``jax.jit``, ``vmap`` and sharding take as it is)::
     R = dqnn.rotation_head(params, features, "6d")  # (..., 3, 3)
     loss = dq.matrix_geodesic_distance(R, R_true).mean()
 
-The representations and maps are those of ``diffquat.torch.nn`` (written once, in the core).
+The representations and maps are those of ``diffquat.torch.nn`` (written once, in the core). A
+``"fisher"`` head's rotation is the mode of a matrix Fisher distribution; ``representation_to_fisher``
+gives its parameter F for the negative log-likelihood::
+
+    raw = features @ params["w"] + params["b"]  # (..., 9)
+    loss = dq.matrix_fisher_nll(dqnn.representation_to_fisher(raw), R_true).mean()
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ __all__ = [
     "REPRESENTATIONS",
     "init_rotation_head",
     "representation_size",
+    "representation_to_fisher",
     "representation_to_matrix",
     "rotation_head",
 ]
@@ -56,6 +62,13 @@ def representation_to_matrix(raw: ArrayLike, representation: Representation) -> 
     zero quaternion gives the identity). Traceable by ``jit``, ``vmap`` and ``grad``.
     """
     return _heads.representation_to_matrix(jnp, _dq, jnp.asarray(raw), representation)
+
+
+def representation_to_fisher(raw: ArrayLike) -> Array:
+    """The matrix Fisher parameter F ``(..., 3, 3)`` of a ``"fisher"`` head's raw outputs ``(..., 9)``,
+    row-major: the density ``exp(tr(F^T R)) / c(F)``, whose mode ``matrix_fisher_mode(F)`` is
+    ``representation_to_matrix(raw, "fisher")``."""
+    return _heads.representation_to_fisher(jnp, jnp.asarray(raw))
 
 
 def init_rotation_head(

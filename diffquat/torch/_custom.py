@@ -57,14 +57,25 @@ def _linearised(forward: Callable[[Any, Tensor], Tensor], tangent: Formula, x: T
 
 
 def custom_derivative(
-    forward: Callable[[Any, Tensor], Tensor], tangent: Formula, cotangent: Formula
+    forward: Callable[[Any, Tensor], Tensor],
+    tangent: Formula,
+    cotangent: Formula,
+    *,
+    captured: Callable[[Any, Tensor, Tensor], Tensor] | None = None,
 ) -> Callable[[Any, Tensor], Tensor]:
     """``forward(xp, x) -> y`` with the derivatives ``tangent(xp, x, y, dx) -> dy`` (forward mode)
     and ``cotangent(xp, x, y, gy) -> gx`` (reverse mode). Both formulas are written with
     differentiable torch operations on ``x`` and on the *output* ``y`` (whose own derivative is this
     map again), so every higher order is exact in eager mode, in either order of the two modes.
     ``generate_vmap_rule``: the forward and the formulas are batched torch code, so
-    ``torch.func.vmap`` runs them as they are."""
+    ``torch.func.vmap`` runs them as they are.
+
+    ``captured(xp, x0, dx)``: the map's own form for graph capture, in place of :func:`_linearised`,
+    given ``x0 = x.detach()`` and ``dx = x - x0`` (zero in value, the identity in derivative), whose
+    autodiff gives the map's derivatives at x (the Bingham maps of ``diffquat._fisher``: their Taylor
+    polynomials in dx, whose coefficients all come from one eigendecomposition of x0, where
+    linearising their rules would trace the eigendecomposition and the moments seven times, and
+    differentiate ``eigh``, which is NaN where eigenvalues repeat even for a zero cotangent)."""
 
     class Eager(torch.autograd.Function):
         """Returns ``(y, copy of x)``. The copy is what ``jvp`` reads x from: autograd calls ``jvp``
@@ -104,6 +115,9 @@ def custom_derivative(
 
     def bound(xp: Any, x: Tensor) -> Tensor:
         if torch.compiler.is_compiling() or is_tracing():  # type: ignore[no-untyped-call]
+            if captured is not None:
+                x0 = x.detach()
+                return captured(torch, x0, x - x0)
             return _linearised(forward, tangent, x)
         return Eager.apply(x)[0]  # type: ignore[no-untyped-call]
 

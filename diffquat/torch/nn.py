@@ -12,8 +12,17 @@ of any feature extractor and train with a geodesic loss::
 
 Representations (the number of raw outputs in brackets): ``"quaternion"`` (4), ``"axis_angle"`` (3),
 ``"euler"`` (3, intrinsic ``"XYZ"``, radians), ``"6d"`` (6, Zhou et al. 2019, first two *columns*),
-``"9d"`` (9, SVD projection, Levinson et al. 2020) and ``"10d"`` (10, Peretroukhin et al. 2020).
-The same maps exist as pure functions for JAX in :mod:`diffquat.jax.nn`.
+``"9d"`` (9, SVD projection, Levinson et al. 2020), ``"10d"`` (10, Peretroukhin et al. 2020) and
+``"fisher"`` (9, the parameter F of a matrix Fisher distribution, Mohlin et al. 2020). Every head
+returns rotations; a ``"fisher"`` head returns the distribution's mode, and its ``fisher`` method the
+parameter F, for the negative log-likelihood::
+
+    head = RotationHead(128, representation="fisher")
+    F = head.fisher(features)  # (..., 3, 3)
+    loss = dq.matrix_fisher_nll(F, R_true).mean()  # or -MatrixFisher(F).log_prob(R_true)
+    R = dq.matrix_fisher_mode(F)  # = head(features)
+
+The same maps exist as pure functions for JAX in ``diffquat.jax.nn``.
 """
 
 from __future__ import annotations
@@ -30,7 +39,13 @@ from .._public import public_dir as _public_dir
 from .._types import Representation
 from . import _dispatch
 
-__all__ = ["REPRESENTATIONS", "RotationHead", "representation_size", "representation_to_matrix"]
+__all__ = [
+    "REPRESENTATIONS",
+    "RotationHead",
+    "representation_size",
+    "representation_to_fisher",
+    "representation_to_matrix",
+]
 # dir() lists the public API only (see diffquat._public).
 __dir__ = _public_dir(globals())
 
@@ -46,16 +61,25 @@ def representation_to_matrix(raw: Tensor, representation: Representation) -> Ten
     """Rotation matrices ``(..., 3, 3)`` from raw outputs ``(..., n)``, ``n = representation_size(...)``.
 
     Differentiable everywhere the representation is; any raw output gives a rotation (for example a
-    zero quaternion gives the identity). The ``"9d"`` and ``"10d"`` maps (SVD and eigh) cannot be
-    exported to ONNX, which has no such operator: exporting them raises ``NotImplementedError``.
+    zero quaternion gives the identity). The ``"9d"``, ``"10d"`` and ``"fisher"`` maps (SVD and eigh)
+    cannot be exported to ONNX, which has no such operator: exporting them raises
+    ``NotImplementedError``.
     """
-    if representation in ("9d", "10d"):
+    if representation in ("9d", "10d", "fisher"):
         _dispatch.refuse_onnx("representation_to_matrix", f"the {representation!r} representation")
     return _heads.representation_to_matrix(torch, _dq, raw, representation)
 
 
-# A leaf of torch.fx.symbolic_trace, as the functions of diffquat.torch (see there).
+def representation_to_fisher(raw: Tensor) -> Tensor:
+    """The matrix Fisher parameter F ``(..., 3, 3)`` of a ``"fisher"`` head's raw outputs ``(..., 9)``,
+    row-major: the density ``exp(tr(F^T R)) / c(F)``, whose mode ``matrix_fisher_mode(F)`` is
+    ``representation_to_matrix(raw, "fisher")``."""
+    return _heads.representation_to_fisher(torch, raw)
+
+
+# Leaves of torch.fx.symbolic_trace, as the functions of diffquat.torch (see there).
 torch.fx.wrap("representation_to_matrix")
+torch.fx.wrap("representation_to_fisher")
 
 
 class RotationHead(nn.Module):
@@ -76,6 +100,9 @@ class RotationHead(nn.Module):
     axis-angle and Euler heads both have 3 raw outputs, so their weights would otherwise load without
     complaint). A buffer, not a non-tensor extra state: every exporter (TorchScript, ONNX,
     ``torch.export``) and ``DistributedDataParallel`` handle tensors in a state dict.
+
+    For ``representation="fisher"`` the rotation is the mode of a matrix Fisher distribution whose
+    parameter F ``(..., 3, 3)`` ``fisher`` returns.
     """
 
     representation_code: Tensor
@@ -102,6 +129,17 @@ class RotationHead(nn.Module):
         ``representation_to_matrix`` of its raw outputs. Any features give a rotation; the map runs in
         float32 at least (under ``torch.autocast`` too) and returns the linear layer's dtype."""
         return representation_to_matrix(self.linear(features), self.representation)
+
+    def fisher(self, features: Tensor) -> Tensor:
+        """The matrix Fisher parameter F ``(..., 3, 3)`` of a ``"fisher"`` head (``ValueError`` for the
+        other representations): train with ``matrix_fisher_nll(F, R_true)``; ``forward`` gives its
+        mode."""
+        if self.representation != "fisher":
+            raise ValueError(
+                f"RotationHead.fisher: the head's representation is {self.representation!r}; "
+                "a matrix Fisher parameter comes from a 'fisher' head"
+            )
+        return representation_to_fisher(self.linear(features))
 
     if TYPE_CHECKING:
         # torch types ``Module.__call__`` as returning Any; a call runs ``forward``, so a user's type
