@@ -10,6 +10,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from . import _algebra, _core, _euler
 from . import _representations as _rep
+from . import _statistics as _stats
 from ._backend import Backend, documented, shape_tuple
 
 __all__ = [
@@ -28,6 +29,7 @@ __all__ = [
     "quaternion_conjugate",
     "quaternion_geodesic_distance",
     "quaternion_invert",
+    "quaternion_mean",
     "quaternion_multiply",
     "quaternion_slerp",
     "quaternion_to_axis_angle",
@@ -35,9 +37,12 @@ __all__ = [
     "quaternion_to_matrix",
     "random_quaternions",
     "rotation_6d_to_matrix",
+    "rotation_mean",
     "special_procrustes",
     "standardize_quaternion",
+    "symmetric_geodesic_distance",
     "symmetric_matrix_to_quaternion",
+    "symmetry_group",
     "wxyz_to_xyzw",
     "xyzw_to_wxyz",
 ]
@@ -248,3 +253,35 @@ def random_quaternions(
     uniform = np.random.default_rng(rng).random((*shape_tuple(shape), 3))
     q = _B(_core.quaternions_from_uniform, uniform, scalar_first=scalar_first)
     return _B.cast_canonical(np.asarray(q), np.dtype(dtype), scalar_first)
+
+
+# Rotation averaging and symmetric objects.
+
+
+@documented(_stats.rotation_mean)
+def rotation_mean(
+    matrices: ArrayLike, weights: ArrayLike | None = None, *, method: _stats.Method = "chordal"
+) -> NDArray[Any]:
+    return _B(_stats.rotation_mean, matrices, weights, method=method)
+
+
+@documented(_stats.quaternion_mean)
+def quaternion_mean(
+    q: ArrayLike, weights: ArrayLike | None = None, *, scalar_first: bool = True
+) -> NDArray[Any]:
+    return _B(_stats.quaternion_mean, q, weights, scalar_first=scalar_first)
+
+
+@documented(_stats.symmetric_geodesic_distance)
+def symmetric_geodesic_distance(matrix1: ArrayLike, matrix2: ArrayLike, group: ArrayLike) -> NDArray[Any]:
+    # np.asarray: a 0-d result must stay an array, not become a NumPy scalar.
+    return np.asarray(_B(_stats.symmetric_geodesic_distance, matrix1, matrix2, group))
+
+
+def symmetry_group(name: str, *, dtype: Any = np.float64) -> NDArray[Any]:
+    return _stats.symmetry_group_matrices(name).astype(dtype)
+
+
+symmetry_group.__doc__ = _stats.SYMMETRY_GROUP_DOC.format(
+    keywords="        dtype: floating dtype of the result (default float64).\n"
+)

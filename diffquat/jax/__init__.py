@@ -22,6 +22,7 @@ from jax.typing import ArrayLike
 
 from .. import _algebra, _core, _euler
 from .. import _representations as _rep
+from .. import _statistics as _stats
 from .._backend import Backend, documented, shape_tuple
 from ._custom import custom_derivative, custom_jvp_rule
 from ._namespace import XP
@@ -43,6 +44,7 @@ __all__ = [
     "quaternion_conjugate",
     "quaternion_geodesic_distance",
     "quaternion_invert",
+    "quaternion_mean",
     "quaternion_multiply",
     "quaternion_slerp",
     "quaternion_to_axis_angle",
@@ -50,9 +52,12 @@ __all__ = [
     "quaternion_to_matrix",
     "random_quaternions",
     "rotation_6d_to_matrix",
+    "rotation_mean",
     "special_procrustes",
     "standardize_quaternion",
+    "symmetric_geodesic_distance",
     "symmetric_matrix_to_quaternion",
+    "symmetry_group",
     "wxyz_to_xyzw",
     "xyzw_to_wxyz",
 ]
@@ -456,3 +461,48 @@ def random_quaternions(
     uniform = jax.random.uniform(key, (*shape_tuple(shape), 3), dtype=_B.compute_dtype(dtype))
     q = _B(_core.quaternions_from_uniform, uniform, scalar_first=scalar_first)
     return _B.cast_canonical(q, dtype, scalar_first)
+
+
+# Rotation averaging and symmetric objects. The geodesic means with their implicit derivatives (see
+# diffquat._statistics): jax transposes the tangent rule for reverse mode.
+_karcher_mean = custom_derivative(_stats.karcher_mean, _stats.karcher_tangent)
+_geodesic_median = custom_derivative(_stats.geodesic_median, _stats.median_tangent)
+_rotation_mean = _compiled(_stats.rotation_mean, "method", "procrustes", "karcher", "median")
+_quaternion_mean = _compiled(_stats.quaternion_mean, "scalar_first", "eigenvector")
+_symmetric_geodesic_distance = _compiled(_stats.symmetric_geodesic_distance)
+
+
+@documented(_stats.rotation_mean)
+def rotation_mean(
+    matrices: ArrayLike, weights: ArrayLike | None = None, *, method: _stats.Method = "chordal"
+) -> Array:
+    _stats.check_method("rotation_mean", method)  # before jit, whose static arguments must hash
+    return _B(
+        _rotation_mean,
+        matrices,
+        weights,
+        method=method,
+        procrustes=_special_procrustes,
+        karcher=_karcher_mean,
+        median=_geodesic_median,
+    )
+
+
+@documented(_stats.quaternion_mean)
+def quaternion_mean(q: ArrayLike, weights: ArrayLike | None = None, *, scalar_first: bool = True) -> Array:
+    return _B(_quaternion_mean, q, weights, scalar_first=scalar_first, eigenvector=_smallest_eigenvector)
+
+
+@documented(_stats.symmetric_geodesic_distance)
+def symmetric_geodesic_distance(matrix1: ArrayLike, matrix2: ArrayLike, group: ArrayLike) -> Array:
+    return _B(_symmetric_geodesic_distance, matrix1, matrix2, group)
+
+
+def symmetry_group(name: str, *, dtype: Any = None) -> Array:
+    dtype = jnp.dtype(jax.dtypes.canonicalize_dtype(jnp.float64) if dtype is None else dtype)
+    return jnp.asarray(_stats.symmetry_group_matrices(name), dtype=dtype)
+
+
+symmetry_group.__doc__ = _stats.SYMMETRY_GROUP_DOC.format(
+    keywords="        dtype: floating dtype of the result (default float64 where x64 is on, else float32).\n"
+)

@@ -14,6 +14,7 @@ from torch.jit._trace import TracerWarning, is_tracing
 
 from .. import _algebra, _core, _euler
 from .. import _representations as _rep
+from .. import _statistics as _stats
 from .._backend import Backend, documented, shape_tuple
 from . import _dispatch
 from ._custom import custom_derivative
@@ -34,6 +35,7 @@ __all__ = [
     "quaternion_conjugate",
     "quaternion_geodesic_distance",
     "quaternion_invert",
+    "quaternion_mean",
     "quaternion_multiply",
     "quaternion_slerp",
     "quaternion_to_axis_angle",
@@ -41,9 +43,12 @@ __all__ = [
     "quaternion_to_matrix",
     "random_quaternions",
     "rotation_6d_to_matrix",
+    "rotation_mean",
     "special_procrustes",
     "standardize_quaternion",
+    "symmetric_geodesic_distance",
     "symmetric_matrix_to_quaternion",
+    "symmetry_group",
     "wxyz_to_xyzw",
     "xyzw_to_wxyz",
 ]
@@ -317,6 +322,56 @@ def random_quaternions(
     )
     q = _B(_core.quaternions_from_uniform, uniform, scalar_first=scalar_first)
     return _B.cast_canonical(q, dtype, scalar_first)
+
+
+# Rotation averaging and symmetric objects. The geodesic means with their implicit derivatives (see
+# diffquat._statistics), registered as the SVD and eigh maps are.
+_karcher_mean = custom_derivative(_stats.karcher_mean, _stats.karcher_tangent, _stats.karcher_cotangent)
+_geodesic_median = custom_derivative(_stats.geodesic_median, _stats.median_tangent, _stats.median_cotangent)
+
+
+@documented(_stats.rotation_mean)
+def rotation_mean(
+    matrices: Tensor, weights: Tensor | None = None, *, method: _stats.Method = "chordal"
+) -> Tensor:
+    _dispatch.refuse_onnx("rotation_mean", "a mean of rotations")
+    return _B(
+        _stats.rotation_mean,
+        matrices,
+        weights,
+        method=method,
+        procrustes=_special_procrustes,
+        karcher=_karcher_mean,
+        median=_geodesic_median,
+        to_quaternion=_matrix_to_quaternion,
+        to_matrix=_quaternion_to_matrix,
+    )
+
+
+@documented(_stats.quaternion_mean)
+def quaternion_mean(q: Tensor, weights: Tensor | None = None, *, scalar_first: bool = True) -> Tensor:
+    _dispatch.refuse_onnx("quaternion_mean", "the largest eigenvector")
+    return _B(
+        _stats.quaternion_mean, q, weights, scalar_first=scalar_first, eigenvector=_smallest_eigenvector
+    )
+
+
+@documented(_stats.symmetric_geodesic_distance)
+def symmetric_geodesic_distance(matrix1: Tensor, matrix2: Tensor, group: Tensor) -> Tensor:
+    return _B(_stats.symmetric_geodesic_distance, matrix1, matrix2, group)
+
+
+def symmetry_group(
+    name: str, *, dtype: torch.dtype | None = None, device: torch.device | str | None = None
+) -> Tensor:
+    matrices = _stats.symmetry_group_matrices(name)
+    return torch.tensor(matrices.copy(), dtype=dtype or torch.get_default_dtype(), device=device)
+
+
+symmetry_group.__doc__ = _stats.SYMMETRY_GROUP_DOC.format(
+    keywords="        dtype: floating dtype of the result (default ``torch.get_default_dtype()``).\n"
+    "        device: device of the result (default: the current default device).\n"
+)
 
 
 # torch.fx.symbolic_trace runs Python on Proxy objects, which have no shape or dtype to validate: it
