@@ -50,8 +50,9 @@ def _linearised(forward: Callable[[Any, Tensor], Tensor], tangent: Formula, x: T
     y0 = forward(torch, x0)
     # y0 carries a zero tangent rather than none: torch 2.13's compiled vmap(jvp) fails on a matmul of
     # a batched tensor without a tangent by one with ("Tensor device mismatch"). 0 * sum(dx) is
-    # exactly 0 and broadcasts against y0 ((..., 3, 1) for a matrix, (..., 1) for a vector).
-    y0 = y0 + 0 * dx.sum(-1, keepdim=True)
+    # exactly 0 and broadcasts against y0 ((..., 3, 1) for a matrix, (..., 1) for a vector): dx's axes
+    # past y0's leading ones are summed (a mean of samples (..., N, 5) -> (..., 4) sums N too).
+    y0 = y0 + 0 * dx.flatten(y0.ndim - 1).sum(-1, keepdim=True)
     g = y0 + tangent(torch, x, y0, dx)
     return y0 + 0.5 * (tangent(torch, x, g, dx) + tangent(torch, x0, y0, dx))
 
