@@ -22,10 +22,43 @@ from typing import Any
 
 import torch
 from torch import Tensor
+from torch._higher_order_ops import while_loop
 from torch.autograd.forward_ad import _set_fwd_grad_enabled
 from torch.jit._trace import is_tracing
+from torch.utils._pytree import tree_flatten, tree_unflatten
 
 Formula = Callable[[Any, Tensor, Tensor, Tensor], Tensor]
+
+
+class _Looping:
+    """``torch`` as the namespace of a forward that Dynamo traces (``torch.compile``, ``torch.export``):
+    the fixed-count loops of the iterative maps (``diffquat._statistics.repeat``) become one
+    ``while_loop`` (a higher-order op), so that the graph holds one copy of the step, not one per
+    iteration (the geodesic median's forward: ~10^4 nodes unrolled, which inductor compiled for
+    minutes). The forward's input is detached (see :func:`_linearised`): ``while_loop`` is never
+    differentiated, which it does not support. Eager calls keep Python loops (an eager ``while_loop``
+    compiles itself, and ``torch.jit.trace`` cannot record it)."""
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(torch, name)
+
+    @staticmethod
+    def diffquat_repeat(count: int, step: Callable[[Any], Any], state: Any) -> Any:
+        leaves, spec = tree_flatten(state)
+
+        def cond(i: Tensor, *carried: Tensor) -> Tensor:
+            return i < count
+
+        def body(i: Tensor, *carried: Tensor) -> tuple[Tensor, ...]:
+            out, _ = tree_flatten(step(tree_unflatten(list(carried), spec)))
+            return (i + 1, *out)
+
+        start = torch.zeros((), dtype=torch.int64, device=leaves[0].device)
+        out = while_loop(cond, body, (start, *leaves))  # type: ignore[no-untyped-call]
+        return tree_unflatten(list(out[1:]), spec)
+
+
+_LOOPING = _Looping()
 
 
 def _linearised(forward: Callable[[Any, Tensor], Tensor], tangent: Formula, x: Tensor) -> Tensor:
@@ -47,7 +80,7 @@ def _linearised(forward: Callable[[Any, Tensor], Tensor], tangent: Formula, x: T
     those of the map; the eager Function is exact to every order."""
     x0 = x.detach()
     dx = x - x0
-    y0 = forward(torch, x0)
+    y0 = forward(_LOOPING if torch.compiler.is_compiling() else torch, x0)
     # y0 carries a zero tangent rather than none: torch 2.13's compiled vmap(jvp) fails on a matmul of
     # a batched tensor without a tangent by one with ("Tensor device mismatch"). 0 * sum(dx) is
     # exactly 0 and broadcasts against y0 ((..., 3, 1) for a matrix, (..., 1) for a vector): dx's axes
