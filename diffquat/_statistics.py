@@ -317,7 +317,8 @@ def karcher_mean(xp: Any, x: Any, *, eigenvector: Callable[[Any, Any], Any] = sm
     u, w, positive = _weights(xp, x)
     # A + lift I: the identity where the weights sum to zero (A = 0), and bounded steps where A is
     # singular (samples a half-turn from q). A lift changes the step, never the fixed point (g = 0).
-    lift = xp.where(positive, float(xp.finfo(x.dtype).eps) ** 0.5, 1.0)
+    one = xp.ones_like(w[..., 0])  # an array: a NumPy where of two Python numbers would be float64
+    lift = xp.where(positive, float(xp.finfo(x.dtype).eps) ** 0.5 * one, one)
 
     def newton(y: Any) -> Any:
         v, _ = _forward_logs(xp, y, u)
