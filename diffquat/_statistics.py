@@ -491,10 +491,12 @@ def geodesic_median(xp: Any, x: Any, *, eigenvector: Callable[[Any, Any], Any] =
     objective) it is that sample, exactly. All steps are fixed: the objective is compared, never
     looped on."""
     u, w, positive = _weights(xp, x)
-    atol = 8.0 * float(xp.finfo(x.dtype).eps)
     heaviest = _pick(xp, _first_minimum(xp, -w), u)
 
     def step(state: tuple[Any, Any]) -> tuple[Any, Any]:
+        # Constants inside the step: a Python float from outside is a symbolic input of torch's
+        # while_loop under dynamic shapes, which it refuses.
+        atol = 8.0 * float(xp.finfo(x.dtype).eps)
         y, first = state
         s = _Sweep(xp, y, u, w)
         sample = xp.where(first[..., None], heaviest, _pick(xp, _first_minimum(xp, s.angle), u))

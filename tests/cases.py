@@ -787,7 +787,7 @@ OPS += [
 # zero, whose documented mean is the identity. The means are equivariant, mean(R P_i) = R mean(P_i),
 # so every case has the same, generic, configuration.
 CLUSTER = np.array(
-    [[0.4, -0.1, 0.2], [-0.3, 0.5, 0.1], [0.1, 0.2, -0.6], [-0.2, -0.4, -0.1], [0.3, 0.3, 0.35]]
+    [[0.4, -0.1, 0.2], [-0.3, 0.5, 0.1], [0.1, 0.2, -0.6], [-0.2, -0.4, -0.1], [0.3, 0.25, 0.35]]
 )
 CLUSTER_WEIGHTS = np.array([1.0, 0.5, 2.0, 0.25, 1.5])
 _CLUSTER_QUATERNIONS = Rotation.from_rotvec(CLUSTER).as_quat(scalar_first=True)
