@@ -32,7 +32,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from ._algebra import hamilton, match_rank, quaternion_to_axis_angle
+from ._algebra import hamilton, match_rank, series_threshold
 from ._algebra import matrix_geodesic_distance as _matrix_geodesic_distance
 from ._core import (
     canonical,
@@ -281,21 +281,21 @@ def _c(xp: Any, t2: Any) -> Any:
     return xp.where(small, series, closed)
 
 
-def _jacobian_inverse(xp: Any, v: Any, x: Any, right: bool) -> Any:
-    """``Jr^-1(v) x`` (``right``) or ``Jl^-1(v) x`` for ``v``, ``x`` (..., 3): ``x +- hat(v) x / 2 +
-    c(|v|) hat(v)^2 x``, without forming the matrix."""
-    vx = _cross(xp, v, x)
-    c = _c(xp, _dot(xp, v, v))[..., None]
-    return x + (0.5 if right else -0.5) * vx + c * _cross(xp, v, vx)
-
-
-def _weighted_left_inverse(xp: Any, w: Any, v: Any) -> Any:
-    """``sum_i w_i Jl^-1(v_i)`` (..., 3, 3) for weights (..., N) and ``v`` (..., N, 3), by
-    ``hat(v)^2 = v v^T - |v|^2 I``: ``(sum w - sum w c |v|^2) I - hat(sum w v) / 2 + sum w c v v^T``."""
-    t2 = _dot(xp, v, v)
-    wc = w * _c(xp, t2)
+def _weighted_left_inverse(xp: Any, w: Any, v: Any, c: Any, t2: Any) -> tuple[Any, Any]:
+    """``sum_i w_i Jl^-1(v_i)`` (..., 3, 3) for weights (..., N), ``v`` (..., N, 3), ``c = c(|v|)`` and
+    ``t2 = |v|^2`` (..., N), by ``hat(v)^2 = v v^T - |v|^2 I``: ``(sum w - sum w c |v|^2) I -
+    hat(sum w v) / 2 + sum w c v v^T``; and that diagonal term ``sum_i w_i (1 - c_i t_i^2)`` (...)."""
+    wc = w * c
+    diagonal = xp.sum(w - wc * t2, axis=-1)
     outer = xp.matmul(_transpose(xp, v * wc[..., None]), v)
-    return _hat_plus(xp, xp.sum(w - wc * t2, axis=-1), -0.5 * xp.sum(w[..., None] * v, axis=-2), outer)
+    return _hat_plus(xp, diagonal, -0.5 * xp.sum(w[..., None] * v, axis=-2), outer), diagonal
+
+
+def _jacobian_inverse(xp: Any, v: Any, c: Any, x: Any, right: bool) -> Any:
+    """``Jr^-1(v) x`` (``right``) or ``Jl^-1(v) x`` for ``v``, ``x`` (..., 3) and ``c = c(|v|)`` (...):
+    ``x +- hat(v) x / 2 + c hat(v)^2 x``, without forming the matrix."""
+    vx = _cross(xp, v, x)
+    return x + (0.5 if right else -0.5) * vx + c[..., None] * _cross(xp, v, vx)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -303,10 +303,30 @@ def _weighted_left_inverse(xp: Any, w: Any, v: Any) -> Any:
 
 
 def _logs(xp: Any, y: Any, u: Any) -> Any:
-    """``log(y* u_i)`` (..., N, 3), angle in [0, pi] (the shortest rotation: blind to the signs)."""
+    """``log(y* u_i)`` (..., N, 3) for the derivative formulas, angle in [0, pi] (the sign of ``y* u_i``
+    with ``w >= 0``: blind to the signs): ``2 atan2(s, w) / s`` times the vector part, with
+    ``quaternion_to_axis_angle``'s series in ``s^2 / w^2`` at the identity, so that it is smooth (to
+    every order) wherever the angle is below pi. Without that function's zero-quaternion and
+    ``w = 0`` rules, which products of unit quaternions never need: a third fewer operations to
+    trace and compile."""
     yw, yx, yy, yz = split_quaternion(y[..., None, :], True)
-    r = hamilton((yw, -yx, -yy, -yz), split_quaternion(u, True))
-    return quaternion_to_axis_angle(xp, join_quaternion(xp, *r, True))
+    rw, rx, ry, rz = hamilton((yw, -yx, -yy, -yz), split_quaternion(u, True))
+    flip = rw < 0
+    w = xp.where(flip, -rw, rw)
+    vector = xp.stack([rx, ry, rz], axis=-1)
+    s2 = rx * rx + ry * ry + rz * rz
+    small = s2 < series_threshold(xp, s2.dtype) * (w * w)
+    r2 = xp.where(small, s2 / xp.where(small, w * w, 1.0), 0.0)
+    series = (2.0 / xp.where(small, w, 1.0)) * (1.0 - r2 / 3.0 + r2 * r2 / 5.0)
+    s = xp.sqrt(xp.where(small, 1.0, s2))
+    k = xp.where(small, series, 2.0 * xp.atan2(s, w) / s)
+    return xp.where(flip[..., None], -vector, vector) * k[..., None]
+
+
+def mean_shape(shape: tuple[int, ...]) -> tuple[int, ...]:
+    """The shape of :func:`karcher_mean`'s and :func:`geodesic_median`'s result for an input of
+    shape ``(..., N, 5)``: ``(..., 4)``."""
+    return (*shape[:-2], 4)
 
 
 def karcher_mean(xp: Any, x: Any, *, eigenvector: Callable[[Any, Any], Any] = smallest_eigenvector) -> Any:
@@ -321,9 +341,11 @@ def karcher_mean(xp: Any, x: Any, *, eigenvector: Callable[[Any, Any], Any] = sm
     lift = xp.where(positive, float(xp.finfo(x.dtype).eps) ** 0.5 * one, one)
 
     def newton(y: Any) -> Any:
-        v, _ = _forward_logs(xp, y, u)
+        v, angle = _forward_logs(xp, y, u)
         g = xp.sum(w[..., None] * v, axis=-2)
-        return _exp_right(xp, y, _solve3(xp, _diagonal(xp, _weighted_left_inverse(xp, w, v), lift), g))
+        t2 = angle * angle
+        a, _ = _weighted_left_inverse(xp, w, v, _c(xp, t2), t2)
+        return _exp_right(xp, y, _solve3(xp, _diagonal(xp, a, lift), g))
 
     y = repeat(xp, KARCHER_STEPS, newton, _chordal_quaternion(xp, _unit(xp, u), w, eigenvector))
     return _finish(xp, y, positive)
@@ -361,15 +383,28 @@ def _rotation_of_cotangent(xp: Any, y: Any, gy: Any) -> Any:
     return 0.5 * xp.stack([gx, gy_, gz], axis=-1)
 
 
-def _karcher_system(xp: Any, x: Any, y: Any) -> tuple[Any, Any, Any, Any, Any]:
+def _karcher_system(xp: Any, x: Any, y: Any) -> tuple[Any, Any, Any, Any, Any, Any]:
     """The pieces of the implicit derivative of the Karcher mean at its solution ``y``: quaternions,
-    normalised weights, logs, the total weight (1 where it is zero) and ``A = sum_i w_i Jl^-1(v_i)``."""
+    normalised weights, logs ``v_i``, ``c(|v_i|)``, the total weight (1 where it is zero) and
+    ``A = sum_i w_i Jl^-1(v_i)``, lifted where it is near singular.
+
+    The lift: ``Jl^-1(v)``'s symmetric part has eigenvalues 1 (along ``v``) and ``k = (t / 2) cot(t /
+    2) = 1 - c t^2`` (across), so ``m = sum_i w_i k_i`` (which A's diagonal term already is) bounds
+    the smallest eigenvalue of A's from below; ``A + max(0, sqrt(eps) - m) I`` is A itself unless
+    ``m < sqrt(eps)`` (samples within ~sqrt(eps) of a half-turn from the mean, where it is not
+    unique), and there bounds the derivative. Weights summing to zero: ``A + I``."""
     u, omega = x[..., :4], x[..., 4]
     total = xp.sum(omega, axis=-1, keepdims=True)
-    total = xp.where(total > xp.finfo(x.dtype).tiny, total, 1.0)
+    positive = total > xp.finfo(x.dtype).tiny
+    total = xp.where(positive, total, 1.0)
     w = omega / total
     v = _logs(xp, y, u)
-    return u, w, v, total, _floored(xp, _weighted_left_inverse(xp, w, v))
+    t2 = _dot(xp, v, v)
+    c = _c(xp, t2)
+    a, diagonal = _weighted_left_inverse(xp, w, v, c, t2)
+    floor = float(xp.finfo(x.dtype).eps) ** 0.5
+    lift = xp.where(positive[..., 0], xp.where(diagonal < floor, floor - diagonal, 0.0), 1.0)
+    return u, w, v, c, total, _diagonal(xp, a, lift)
 
 
 def karcher_tangent(xp: Any, x: Any, y: Any, dx: Any) -> Any:
@@ -380,9 +415,9 @@ def karcher_tangent(xp: Any, x: Any, y: Any, dx: Any) -> Any:
     ``A e = sum_i w_i Jr^-1(v_i) d_i + sum_i d(omega_i) v_i / sum omega`` (the term in ``d(sum omega)``
     multiplies ``sum_i w_i v_i = 0``). Exact on the solutions, so differentiating this formula again
     (through ``y``, whose derivative is this map) gives the second derivative."""
-    u, w, v, total, a = _karcher_system(xp, x, y)
+    u, w, v, c, total, a = _karcher_system(xp, x, y)
     d = _right_perturbations(xp, u, dx[..., :4])
-    b = xp.sum(w[..., None] * _jacobian_inverse(xp, v, d, right=True), axis=-2)
+    b = xp.sum(w[..., None] * _jacobian_inverse(xp, v, c, d, right=True), axis=-2)
     b = b + xp.sum(dx[..., 4:5] * v, axis=-2) / total
     return _tangent_of_rotation(xp, y, _solve3(xp, a, b))
 
@@ -390,9 +425,9 @@ def karcher_tangent(xp: Any, x: Any, y: Any, dx: Any) -> Any:
 def karcher_cotangent(xp: Any, x: Any, y: Any, gy: Any) -> Any:
     """Reverse-mode derivative of :func:`karcher_mean`: the transpose of :func:`karcher_tangent`
     (``Jr^-1(v)^T = Jl^-1(v)``)."""
-    u, w, v, total, a = _karcher_system(xp, x, y)
+    u, w, v, c, total, a = _karcher_system(xp, x, y)
     gb = _solve3_transposed(xp, a, _rotation_of_cotangent(xp, y, gy))[..., None, :]
-    gd = w[..., None] * _jacobian_inverse(xp, v, xp.broadcast_to(gb, v.shape), right=False)
+    gd = w[..., None] * _jacobian_inverse(xp, v, c, xp.broadcast_to(gb, v.shape), right=False)
     gomega = xp.sum(v * gb, axis=-1, keepdims=True) / total[..., None]
     return xp.concat([_right_perturbations_transposed(xp, u, gd), gomega], axis=-1)
 

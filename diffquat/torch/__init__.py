@@ -326,8 +326,13 @@ def random_quaternions(
 
 # Rotation averaging and symmetric objects. The geodesic means with their implicit derivatives (see
 # diffquat._statistics), registered as the SVD and eigh maps are.
-_karcher_mean = custom_derivative(_stats.karcher_mean, _stats.karcher_tangent, _stats.karcher_cotangent)
-_geodesic_median = custom_derivative(_stats.geodesic_median, _stats.median_tangent, _stats.median_cotangent)
+# Their forwards are opaque operators: captures record one call, not the iterations (see _custom).
+_karcher_mean = custom_derivative(
+    _stats.karcher_mean, _stats.karcher_tangent, _stats.karcher_cotangent, result_shape=_stats.mean_shape
+)
+_geodesic_median = custom_derivative(
+    _stats.geodesic_median, _stats.median_tangent, _stats.median_cotangent, result_shape=_stats.mean_shape
+)
 
 
 @documented(_stats.rotation_mean)

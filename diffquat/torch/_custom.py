@@ -13,6 +13,10 @@ Two forms of one map, because eager torch and graph capture each honour a differ
   (``torch.func.jvp`` of the SVD at M = I: NaN); ``torch.jit.trace`` records one as a Python call that
   TorchScript cannot save. So the map is written as plain operations whose autodiff *is* the custom
   rule, to second order (:func:`_linearised`).
+
+An iterative map (the geodesic means: a fixed number of Newton steps, then a derivative by the
+implicit function theorem) may also make its forward one opaque operator (``result_shape``, see
+:func:`_opaque`): no capture then traces its iterations, whose derivative is never taken anyway.
 """
 
 from __future__ import annotations
@@ -22,43 +26,10 @@ from typing import Any
 
 import torch
 from torch import Tensor
-from torch._higher_order_ops import while_loop
 from torch.autograd.forward_ad import _set_fwd_grad_enabled
 from torch.jit._trace import is_tracing
-from torch.utils._pytree import tree_flatten, tree_unflatten
 
 Formula = Callable[[Any, Tensor, Tensor, Tensor], Tensor]
-
-
-class _Looping:
-    """``torch`` as the namespace of a forward that Dynamo traces (``torch.compile``, ``torch.export``):
-    the fixed-count loops of the iterative maps (``diffquat._statistics.repeat``) become one
-    ``while_loop`` (a higher-order op), so that the graph holds one copy of the step, not one per
-    iteration (the geodesic median's forward: ~10^4 nodes unrolled, which inductor compiled for
-    minutes). The forward's input is detached (see :func:`_linearised`): ``while_loop`` is never
-    differentiated, which it does not support. Eager calls keep Python loops (an eager ``while_loop``
-    compiles itself, and ``torch.jit.trace`` cannot record it)."""
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(torch, name)
-
-    @staticmethod
-    def diffquat_repeat(count: int, step: Callable[[Any], Any], state: Any) -> Any:
-        leaves, spec = tree_flatten(state)
-
-        def cond(i: Tensor, *carried: Tensor) -> Tensor:
-            return i < count
-
-        def body(i: Tensor, *carried: Tensor) -> tuple[Tensor, ...]:
-            out, _ = tree_flatten(step(tree_unflatten(list(carried), spec)))
-            return (i + 1, *out)
-
-        start = torch.zeros((), dtype=torch.int64, device=leaves[0].device)
-        out = while_loop(cond, body, (start, *leaves))  # type: ignore[no-untyped-call]
-        return tree_unflatten(list(out[1:]), spec)
-
-
-_LOOPING = _Looping()
 
 
 def _linearised(forward: Callable[[Any, Tensor], Tensor], tangent: Formula, x: Tensor) -> Tensor:
@@ -80,7 +51,7 @@ def _linearised(forward: Callable[[Any, Tensor], Tensor], tangent: Formula, x: T
     those of the map; the eager Function is exact to every order."""
     x0 = x.detach()
     dx = x - x0
-    y0 = forward(_LOOPING if torch.compiler.is_compiling() else torch, x0)
+    y0 = forward(torch, x0)
     # y0 carries a zero tangent rather than none: torch 2.13's compiled vmap(jvp) fails on a matmul of
     # a batched tensor without a tangent by one with ("Tensor device mismatch"). 0 * sum(dx) is
     # exactly 0 and broadcasts against y0 ((..., 3, 1) for a matrix, (..., 1) for a vector): dx's axes
@@ -90,15 +61,55 @@ def _linearised(forward: Callable[[Any, Tensor], Tensor], tangent: Formula, x: T
     return y0 + 0.5 * (tangent(torch, x, g, dx) + tangent(torch, x0, y0, dx))
 
 
+def _opaque(
+    forward: Callable[[Any, Tensor], Tensor], result_shape: Callable[[tuple[int, ...]], tuple[int, ...]]
+) -> Callable[[Any, Tensor], Tensor]:
+    """``forward`` as one operator (``torch.library.custom_op`` ``diffquat::<name>``): captures record
+    one call (``torch.compile`` and ``torch.export`` through its fake implementation, of shape
+    ``result_shape(x.shape)``; ``torch.jit.trace``, TorchScript and ``make_fx`` as the operator),
+    and inductor calls the eager function. Why: the geodesic median's forward is 12 iterations of a
+    few hundred operations, ~10^4 nodes unrolled, which inductor compiled for minutes and export
+    traced for one; its derivative never looks inside (it is the implicit function theorem's). Its
+    vmap rule moves the batched dimension to the front: the forward is batched over leading
+    dimensions. Not differentiable itself: it is only ever called where no derivative is taken."""
+
+    @torch.library.custom_op(f"diffquat::{forward.__name__}", mutates_args=())
+    def operator(x: Tensor) -> Tensor:
+        return forward(torch, x).contiguous()
+
+    @operator.register_fake
+    def _(x: Tensor) -> Tensor:
+        return x.new_empty(result_shape(tuple(x.shape)))
+
+    def batched(info: Any, in_dims: tuple[int | None], x: Tensor) -> tuple[Tensor, int | None]:
+        (dim,) = in_dims
+        return operator(x if dim is None else x.movedim(dim, 0)), (None if dim is None else 0)
+
+    operator.register_vmap(batched)
+
+    def bound(xp: Any, x: Tensor) -> Tensor:
+        return operator(x)
+
+    bound.__name__ = forward.__name__
+    return bound
+
+
 def custom_derivative(
-    forward: Callable[[Any, Tensor], Tensor], tangent: Formula, cotangent: Formula
+    forward: Callable[[Any, Tensor], Tensor],
+    tangent: Formula,
+    cotangent: Formula,
+    *,
+    result_shape: Callable[[tuple[int, ...]], tuple[int, ...]] | None = None,
 ) -> Callable[[Any, Tensor], Tensor]:
     """``forward(xp, x) -> y`` with the derivatives ``tangent(xp, x, y, dx) -> dy`` (forward mode)
     and ``cotangent(xp, x, y, gy) -> gx`` (reverse mode). Both formulas are written with
     differentiable torch operations on ``x`` and on the *output* ``y`` (whose own derivative is this
     map again), so every higher order is exact in eager mode, in either order of the two modes.
     ``generate_vmap_rule``: the forward and the formulas are batched torch code, so
-    ``torch.func.vmap`` runs them as they are."""
+    ``torch.func.vmap`` runs them as they are. With ``result_shape`` (the shape of ``y`` for that of
+    ``x``), the forward is an opaque operator (:func:`_opaque`)."""
+    if result_shape is not None:
+        forward = _opaque(forward, result_shape)
 
     class Eager(torch.autograd.Function):
         """Returns ``(y, copy of x)``. The copy is what ``jvp`` reads x from: autograd calls ``jvp``
