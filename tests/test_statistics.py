@@ -254,33 +254,29 @@ def test_gradient_of_the_median_at_a_sample_follows_that_sample(backend: Backend
 
 @differentiable
 def test_gradients_are_finite_where_the_mean_is_not_unique(backend: Backend) -> None:
-    """Where no derivative exists, the gradients are finite (the regularised systems, documented):
-    weights summing to zero; two rotations a half-turn apart (no unique Karcher mean or median); the
-    median of two samples (any point between them); a median at two coincident samples."""
+    """Where no derivative exists, the gradients are finite (the regularised systems, documented), in
+    one batch of sets of four samples: weights summing to zero (two sets); two rotations a half-turn
+    apart (no unique Karcher mean or median); the median of two samples (any point between them);
+    a median at two coincident samples. Samples of zero weight fill the pairs up to four."""
     dq = backend.module
-    rz = Rotation.from_rotvec([0.0, 0.0, np.pi]).as_matrix()
-    pairs = np.stack(
-        [np.stack([np.eye(3), rz]), np.stack([np.eye(3), Rotation.from_rotvec([0.4, 0, 0]).as_matrix()])]
-    )
-    duplicate = np.concatenate([np.stack([np.eye(3)] * 2), cluster(1, 2, 1.0, seed=11)[0][0]])[None]
-    inputs = [
-        (cluster(2, 4, 1.0, seed=11)[0], np.zeros((2, 4))),
-        (pairs, np.ones((2, 2))),
-        (duplicate, np.array([[1.0, 1.0, 0.5, 0.4]])),
-    ]
+    others, _, _ = cluster(5, 2, 1.0, seed=11)
+    rz, rx = Rotation.from_rotvec([[0.0, 0.0, np.pi], [0.4, 0.0, 0.0]]).as_matrix()
+    eye = np.eye(3)
+    firsts = np.stack([others[0], others[1], np.stack([eye, rz]), np.stack([eye, rx]), np.stack([eye, eye])])
+    matrices = np.concatenate([firsts, others], axis=1)  # (5, 4, 3, 3)
+    weights = np.array([[0.0] * 4, [0.0] * 4, [1, 1, 0, 0], [1, 1, 0, 0], [1, 1, 0.5, 0.4]], dtype=float)
     for method in METHODS:
-        for matrices, weights in inputs:
-            if backend.name == "torch":
-                m, w = torch.tensor(matrices, requires_grad=True), torch.tensor(weights, requires_grad=True)
-                out = dq.rotation_mean(m, w, method=method)
-                grads = [g.numpy() for g in torch.autograd.grad((out * out).sum(), (m, w))]
-            else:
+        if backend.name == "torch":
+            m, w = torch.tensor(matrices, requires_grad=True), torch.tensor(weights, requires_grad=True)
+            out = dq.rotation_mean(m, w, method=method)
+            grads = [g.numpy() for g in torch.autograd.grad((out * out).sum(), (m, w))]
+        else:
 
-                def loss(m: Any, w: Any, method: str = method) -> Any:
-                    return (dq.rotation_mean(m, w, method=method) ** 2).sum()
+            def loss(m: Any, w: Any, method: str = method) -> Any:
+                return (dq.rotation_mean(m, w, method=method) ** 2).sum()
 
-                grads = [np.asarray(g) for g in jax.grad(loss, argnums=(0, 1))(matrices, weights)]
-            assert all(np.all(np.isfinite(g)) for g in grads), method
+            grads = [np.asarray(g) for g in jax.grad(loss, argnums=(0, 1))(matrices, weights)]
+        assert all(np.all(np.isfinite(g)) for g in grads), method
 
 
 # ---------------------------------------------------------------------------------------------------
