@@ -11,9 +11,10 @@ from numpy.typing import ArrayLike, NDArray
 from . import _algebra, _core, _euler, _lie
 from . import _fisher as _fi
 from . import _representations as _rep
+from . import _statistics as _stats
 from ._backend import Backend, documented, shape_tuple
 from ._public import public_dir as _public_dir
-from ._types import EulerConvention, Rotation6DLayout, Side
+from ._types import EulerConvention, MeanMethod, Rotation6DLayout, Side
 
 __all__ = [
     "axis_angle_to_matrix",
@@ -36,6 +37,7 @@ __all__ = [
     "quaternion_conjugate",
     "quaternion_geodesic_distance",
     "quaternion_invert",
+    "quaternion_mean",
     "quaternion_minus",
     "quaternion_multiply",
     "quaternion_plus",
@@ -45,6 +47,7 @@ __all__ = [
     "quaternion_to_matrix",
     "random_quaternions",
     "rotation_6d_to_matrix",
+    "rotation_mean",
     "so3_exp",
     "so3_hat",
     "so3_left_jacobian",
@@ -57,7 +60,9 @@ __all__ = [
     "so3_vee",
     "special_procrustes",
     "standardize_quaternion",
+    "symmetric_geodesic_distance",
     "symmetric_matrix_to_quaternion",
+    "symmetry_group",
     "wxyz_to_xyzw",
     "xyzw_to_wxyz",
 ]
@@ -394,3 +399,35 @@ def matrix_fisher_sample(
         )
 
     return _B(_fi.matrix_fisher_sample, checked, draw=draw)
+
+
+# Rotation averaging and symmetric objects.
+
+
+@documented(_stats.rotation_mean)
+def rotation_mean(
+    matrices: ArrayLike, weights: ArrayLike | None = None, *, method: MeanMethod = "chordal"
+) -> NDArray[Any]:
+    return _B(_stats.rotation_mean, matrices, weights, method=method)
+
+
+@documented(_stats.quaternion_mean)
+def quaternion_mean(
+    q: ArrayLike, weights: ArrayLike | None = None, *, scalar_first: bool = True
+) -> NDArray[Any]:
+    return _B(_stats.quaternion_mean, q, weights, scalar_first=scalar_first)
+
+
+@documented(_stats.symmetric_geodesic_distance)
+def symmetric_geodesic_distance(matrix1: ArrayLike, matrix2: ArrayLike, group: ArrayLike) -> NDArray[Any]:
+    # np.asarray: a 0-d result must stay an array, not become a NumPy scalar.
+    return np.asarray(_B(_stats.symmetric_geodesic_distance, matrix1, matrix2, group))
+
+
+def symmetry_group(name: str, *, dtype: Any = np.float64) -> NDArray[Any]:
+    return _stats.symmetry_group_matrices(name).astype(dtype)
+
+
+symmetry_group.__doc__ = _stats.SYMMETRY_GROUP_DOC.format(
+    keywords="        dtype: floating dtype of the result (default float64).\n"
+)

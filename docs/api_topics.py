@@ -65,6 +65,12 @@ TOPICS: dict[str, list[str]] = {
         "quaternion_plus",
         "quaternion_minus",
     ],
+    "Rotation averaging and symmetric objects": [
+        "rotation_mean",
+        "quaternion_mean",
+        "symmetry_group",
+        "symmetric_geodesic_distance",
+    ],
     "The matrix Fisher distribution": [
         "matrix_fisher_log_normalizer",
         "matrix_fisher_nll",
@@ -97,7 +103,7 @@ TOPICS: dict[str, list[str]] = {
         "RiemannianMomentumState",
     ],
     "Backend switches": ["cpu_kernels"],
-    "Types": ["EulerConvention", "Representation", "Rotation6DLayout", "Side"],
+    "Types": ["EulerConvention", "MeanMethod", "Representation", "Rotation6DLayout", "Side"],
     "Version": ["__version__"],
 }
 

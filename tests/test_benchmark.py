@@ -70,6 +70,30 @@ def test_quick_averaging_benchmark_writes_results(tmp_path: Path) -> None:
     assert lm["seconds_to_1%"] is not None  # the reference reaches its own optimum
 
 
+def test_quick_means_benchmark_writes_results(tmp_path: Path) -> None:
+    """The means' benchmark (``benchmarks.means --quick``: one size, 8 sets of 16 rotations) runs and
+    writes a table per function and mode, with scipy's ``Rotation.mean`` beside the chordal means."""
+    import json
+    import math
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    subprocess.run(
+        [sys.executable, "-m", "benchmarks.means", "--quick", "--out", str(tmp_path)],
+        cwd=ROOT, env=env, check=True, capture_output=True, timeout=600,
+    )  # fmt: skip
+    text = (tmp_path / "MEANS.md").read_text()
+    for function in ("rotation_mean[chordal]", "rotation_mean[geodesic]", "rotation_mean[geodesic_l1]"):
+        for mode in ("forward", "forward + backward"):
+            assert f"## {function}, {mode}" in text
+    assert "## quaternion_mean, forward" in text
+    assert "| scipy Rotation.mean |" in text
+    results = json.loads((tmp_path / "means.json").read_text())
+    for per_mode in results["functions"].values():
+        for per_size in per_mode.values():
+            for timings in per_size.values():
+                assert all(math.isfinite(t["median_s"]) and t["median_s"] > 0 for t in timings.values())
+
+
 def test_merge_lists_only_the_runs_whose_tables_it_shows(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

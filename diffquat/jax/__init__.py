@@ -25,9 +25,10 @@ from jax.typing import ArrayLike
 from .. import _algebra, _core, _euler, _lie
 from .. import _fisher as _fi
 from .. import _representations as _rep
+from .. import _statistics as _stats
 from .._backend import Backend, documented, shape_tuple
 from .._public import public_dir as _public_dir
-from .._types import EulerConvention, Rotation6DLayout, Side
+from .._types import EulerConvention, MeanMethod, Rotation6DLayout, Side
 from ._custom import custom_derivative, custom_jvp_rule
 from ._namespace import XP
 
@@ -53,6 +54,7 @@ __all__ = [
     "quaternion_conjugate",
     "quaternion_geodesic_distance",
     "quaternion_invert",
+    "quaternion_mean",
     "quaternion_minus",
     "quaternion_multiply",
     "quaternion_plus",
@@ -62,6 +64,7 @@ __all__ = [
     "quaternion_to_matrix",
     "random_quaternions",
     "rotation_6d_to_matrix",
+    "rotation_mean",
     "so3_exp",
     "so3_hat",
     "so3_left_jacobian",
@@ -74,7 +77,9 @@ __all__ = [
     "so3_vee",
     "special_procrustes",
     "standardize_quaternion",
+    "symmetric_geodesic_distance",
     "symmetric_matrix_to_quaternion",
+    "symmetry_group",
     "wxyz_to_xyzw",
     "xyzw_to_wxyz",
 ]
@@ -613,3 +618,48 @@ def matrix_fisher_sample(F: ArrayLike, shape: int | tuple[int, ...] = (), *, key
     normal = jax.random.normal(k_normal, (*size, 4), dtype=compute)
     uniform = jax.random.uniform(k_uniform, size, dtype=compute)
     return _B(_sample, jax.lax.stop_gradient(checked), normal=normal, uniform=uniform)
+
+
+# Rotation averaging and symmetric objects. The geodesic means with their implicit derivatives (see
+# diffquat._statistics): jax transposes the tangent rule for reverse mode.
+_karcher_mean = custom_derivative(_stats.karcher_mean, _stats.karcher_tangent)
+_geodesic_median = custom_derivative(_stats.geodesic_median, _stats.median_tangent)
+_rotation_mean = _compiled(_stats.rotation_mean, "method", "procrustes", "karcher", "median")
+_quaternion_mean = _compiled(_stats.quaternion_mean, "scalar_first", "eigenvector")
+_symmetric_geodesic_distance = _compiled(_stats.symmetric_geodesic_distance)
+
+
+@documented(_stats.rotation_mean)
+def rotation_mean(
+    matrices: ArrayLike, weights: ArrayLike | None = None, *, method: MeanMethod = "chordal"
+) -> Array:
+    _stats.check_method("rotation_mean", method)  # before jit, whose static arguments must hash
+    return _B(
+        _rotation_mean,
+        matrices,
+        weights,
+        method=method,
+        procrustes=_special_procrustes,
+        karcher=_karcher_mean,
+        median=_geodesic_median,
+    )
+
+
+@documented(_stats.quaternion_mean)
+def quaternion_mean(q: ArrayLike, weights: ArrayLike | None = None, *, scalar_first: bool = True) -> Array:
+    return _B(_quaternion_mean, q, weights, scalar_first=scalar_first, eigenvector=_smallest_eigenvector)
+
+
+@documented(_stats.symmetric_geodesic_distance)
+def symmetric_geodesic_distance(matrix1: ArrayLike, matrix2: ArrayLike, group: ArrayLike) -> Array:
+    return _B(_symmetric_geodesic_distance, matrix1, matrix2, group)
+
+
+def symmetry_group(name: str, *, dtype: Any = None) -> Array:
+    dtype = jnp.dtype(jax.dtypes.canonicalize_dtype(jnp.float64) if dtype is None else dtype)
+    return jnp.asarray(_stats.symmetry_group_matrices(name), dtype=dtype)
+
+
+symmetry_group.__doc__ = _stats.SYMMETRY_GROUP_DOC.format(
+    keywords="        dtype: floating dtype of the result (default float64 where x64 is on, else float32).\n"
+)

@@ -2,17 +2,24 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 
 
+def _repeat(count: int, step: Callable[[Any], Any], state: Any) -> Any:
+    return jax.lax.fori_loop(0, count, lambda _, s: step(s), state)
+
+
 class _Namespace:
     """``jax.numpy``, with XLA's ``optimization_barrier``, which :func:`diffquat._core.computed_once`
-    uses to keep a value that many outputs share from being recomputed in each of them."""
+    uses to keep a value that many outputs share from being recomputed in each of them, and
+    ``diffquat_repeat`` (a fixed number of steps as one loop, see :func:`diffquat._statistics.repeat`)."""
 
     optimization_barrier = staticmethod(jax.lax.optimization_barrier)
+    diffquat_repeat = staticmethod(_repeat)
 
     def __getattr__(self, name: str) -> Any:
         return getattr(jnp, name)

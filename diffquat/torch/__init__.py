@@ -15,9 +15,10 @@ from torch.jit._trace import TracerWarning, is_tracing
 from .. import _algebra, _core, _euler, _lie
 from .. import _fisher as _fi
 from .. import _representations as _rep
+from .. import _statistics as _stats
 from .._backend import Backend, documented, shape_tuple
 from .._public import public_dir as _public_dir
-from .._types import EulerConvention, Rotation6DLayout, Side
+from .._types import EulerConvention, MeanMethod, Rotation6DLayout, Side
 from . import _dispatch
 from ._custom import custom_derivative
 
@@ -42,6 +43,7 @@ __all__ = [
     "quaternion_conjugate",
     "quaternion_geodesic_distance",
     "quaternion_invert",
+    "quaternion_mean",
     "quaternion_minus",
     "quaternion_multiply",
     "quaternion_plus",
@@ -51,6 +53,7 @@ __all__ = [
     "quaternion_to_matrix",
     "random_quaternions",
     "rotation_6d_to_matrix",
+    "rotation_mean",
     "so3_exp",
     "so3_hat",
     "so3_left_jacobian",
@@ -63,7 +66,9 @@ __all__ = [
     "so3_vee",
     "special_procrustes",
     "standardize_quaternion",
+    "symmetric_geodesic_distance",
     "symmetric_matrix_to_quaternion",
+    "symmetry_group",
     "wxyz_to_xyzw",
     "xyzw_to_wxyz",
 ]
@@ -477,6 +482,61 @@ def matrix_fisher_sample(
         return torch.randn((*size, 4), **options), torch.rand(size, **options)
 
     return _B(_fi.matrix_fisher_sample, checked, draw=draw)
+
+
+# Rotation averaging and symmetric objects. The geodesic means with their implicit derivatives (see
+# diffquat._statistics), registered as the SVD and eigh maps are.
+# Their forwards are opaque operators: captures record one call, not the iterations (see _custom).
+_karcher_mean = custom_derivative(
+    _stats.karcher_mean, _stats.karcher_tangent, _stats.karcher_cotangent, result_shape=_stats.mean_shape
+)
+_geodesic_median = custom_derivative(
+    _stats.geodesic_median, _stats.median_tangent, _stats.median_cotangent, result_shape=_stats.mean_shape
+)
+
+
+@documented(_stats.rotation_mean)
+def rotation_mean(
+    matrices: Tensor, weights: Tensor | None = None, *, method: MeanMethod = "chordal"
+) -> Tensor:
+    _dispatch.refuse_onnx("rotation_mean", "a mean of rotations")
+    return _B(
+        _stats.rotation_mean,
+        matrices,
+        weights,
+        method=method,
+        procrustes=_special_procrustes,
+        karcher=_karcher_mean,
+        median=_geodesic_median,
+        to_quaternion=_matrix_to_quaternion,
+        to_matrix=_quaternion_to_matrix,
+    )
+
+
+@documented(_stats.quaternion_mean)
+def quaternion_mean(q: Tensor, weights: Tensor | None = None, *, scalar_first: bool = True) -> Tensor:
+    _dispatch.refuse_onnx("quaternion_mean", "the largest eigenvector")
+    return _B(
+        _stats.quaternion_mean, q, weights, scalar_first=scalar_first, eigenvector=_smallest_eigenvector
+    )
+
+
+@documented(_stats.symmetric_geodesic_distance)
+def symmetric_geodesic_distance(matrix1: Tensor, matrix2: Tensor, group: Tensor) -> Tensor:
+    return _B(_stats.symmetric_geodesic_distance, matrix1, matrix2, group)
+
+
+def symmetry_group(
+    name: str, *, dtype: torch.dtype | None = None, device: torch.device | str | None = None
+) -> Tensor:
+    matrices = _stats.symmetry_group_matrices(name)
+    return torch.tensor(matrices.copy(), dtype=dtype or torch.get_default_dtype(), device=device)
+
+
+symmetry_group.__doc__ = _stats.SYMMETRY_GROUP_DOC.format(
+    keywords="        dtype: floating dtype of the result (default ``torch.get_default_dtype()``).\n"
+    "        device: device of the result (default: the current default device).\n"
+)
 
 
 # torch.fx.symbolic_trace runs Python on Proxy objects, which have no shape or dtype to validate: it
