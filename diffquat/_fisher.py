@@ -520,6 +520,10 @@ def matrix_fisher_sample(xp: Any, F: Any, *, draw: Draw) -> Any:
         else:
             chosen, done = xp.where(done[..., None], chosen, pick), done | hit
     q = xp.sum(_lead(xp, v, chosen.ndim + 1) * chosen[..., None, :], axis=-1)  # V x: (w, x, y, z)
+    # Normalised again: V is orthonormal only to the eigensolver's accuracy (cuSOLVER's float64
+    # eigenvectors left | |q|^2 - 1 | ~ 2e-15 on an H200, and R(q) below assumes |q| = 1), so that every
+    # sample is a rotation to a few ulps on every device.
+    q = q / xp.sqrt(xp.sum(q * q, axis=-1, keepdims=True))
     # the backend's rule for non-finite rows, here: the sample axes lead, where the rule appends axes
     bad = xp.reshape(bad, (*(1,) * (q.ndim - 1 - bad.ndim), *bad.shape, 1))
     q = xp.where(bad, xp.nan, q)
