@@ -28,10 +28,16 @@ def concrete(trailing: tuple[int, ...]) -> tuple[int, ...]:
     return tuple(N_POINTS if n == -1 else n for n in trailing)
 
 
-# The one place where the backends' signatures may differ: the random source is the framework's own
-# (and the device of the random functions that make their result from nothing but a shape).
-RANDOM_SOURCE = {"numpy": {"rng"}, "torch": {"generator", "device"}, "jax": {"key"}}
-RANDOM_FUNCTIONS = ("random_quaternions", "matrix_fisher_sample")
+# The one place where the backends' signatures may differ: the random source is the framework's own,
+# and so are the dtype and device keywords of the functions that make their result from nothing but a
+# shape or a name.
+RANDOM_SOURCE = {"numpy": {"rng"}, "torch": {"generator"}, "jax": {"key"}}
+FACTORY_KEYWORDS = {"numpy": {"dtype"}, "torch": {"dtype", "device"}, "jax": {"dtype"}}
+OWN_KEYWORDS = {
+    "random_quaternions": (RANDOM_SOURCE, FACTORY_KEYWORDS),
+    "matrix_fisher_sample": (RANDOM_SOURCE,),
+    "symmetry_group": (FACTORY_KEYWORDS,),
+}
 # A backend's own switches, public but no rotation function: jax's C-kernel switch (tests/test_jax_deploy.py).
 SWITCHES = {"numpy": set(), "torch": set(), "jax": {"cpu_kernels"}}
 
@@ -54,9 +60,9 @@ def test_backend_exports_the_same_names_and_signatures_as_numpy(name: str) -> No
     assert sorted(other) == sorted(reference)
     for fn, sig in reference.items():
         params, theirs = dict(sig.parameters), dict(other[fn].parameters)
-        if fn in RANDOM_FUNCTIONS:
-            params = {k: v for k, v in params.items() if k not in RANDOM_SOURCE["numpy"] | {"dtype"}}
-            theirs = {k: v for k, v in theirs.items() if k not in RANDOM_SOURCE[name] | {"dtype"}}
+        for keywords in OWN_KEYWORDS.get(fn, ()):
+            params = {k: v for k, v in params.items() if k not in keywords["numpy"]}
+            theirs = {k: v for k, v in theirs.items() if k not in keywords[name]}
         assert [(p.name, p.kind, p.default) for p in params.values()] == [
             (p.name, p.kind, p.default) for p in theirs.values()
         ], fn
