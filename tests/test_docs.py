@@ -15,6 +15,7 @@ from pathlib import Path
 from types import ModuleType
 from urllib.parse import unquote, urlsplit
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -152,3 +153,42 @@ def test_readme_links_into_the_docs_resolve() -> None:
     targets = re.findall(r"\]\(((?:docs|notebooks|benchmarks)/[^)#]+)", readme)
     assert any(t.startswith("docs/") for t in targets)
     assert [t for t in targets if not (ROOT / t).exists()] == []
+
+
+# The pages a newcomer opens first, and an element each must show once rendered.
+RENDERED = {
+    "index.html": 'id="quick-start"',
+    "api/torch/index.html": 'id="diffquat.torch.quaternion_to_matrix"',
+}
+
+
+@pytest.mark.parametrize("page", sorted(RENDERED))
+def test_pages_render_in_a_headless_browser(site: Path, page: str, tmp_path: Path) -> None:
+    """Headless Chromium (Debian's ``chromium``; scripts/install-test-tools installs it) renders the
+    home page and the torch API page: its DOM after the theme's scripts ran holds the page's content,
+    and its screenshot shows the theme's coloured header bar above dark text on a light page, the
+    layout a reader gets (an unstyled page, a missing stylesheet or a blank render fail)."""
+    import shutil
+
+    import matplotlib.image
+
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    if chromium is None:
+        pytest.skip("chromium is not installed (scripts/install-test-tools installs it)")
+    url = (site / page).as_uri()
+    flags = ["--headless=new", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", "--window-size=1280,900"]
+    dom = subprocess.run([chromium, *flags, "--dump-dom", url], capture_output=True, text=True, timeout=120)
+    assert RENDERED[page] in dom.stdout, dom.stderr[-2000:]
+    shot = tmp_path / "page.png"
+    subprocess.run(
+        [chromium, *flags, f"--screenshot={shot}", url], capture_output=True, timeout=120, check=True
+    )
+    rgb = matplotlib.image.imread(shot)[..., :3]
+    assert rgb.shape[:2] == (900, 1280)
+    header, body = rgb[5:40], rgb[60:]
+    header_colour = np.median(header.reshape(-1, 3), axis=0)
+    assert header_colour.max() - header_colour.min() > 0.2, "the header bar has the theme's colour"
+    assert np.mean(np.all(np.abs(header - header_colour) < 0.05, axis=-1)) > 0.8
+    brightness = body.mean(axis=-1)
+    assert np.mean(brightness > 0.9) > 0.5, "a light page"
+    assert 0.005 < np.mean(brightness < 0.4) < 0.3, "dark text on it"
