@@ -1,10 +1,10 @@
 """Probabilistic pose: a matrix Fisher head against 6D regression on symmetric and ambiguous objects.
 
 The task (synthetic, nothing downloaded): three point clouds, each rotated by a uniformly random
-rotation and slightly perturbed, seen by the network as a blurred 3D occupancy grid (each point a
-Gaussian blob on a fixed grid of voxels). The grid, unlike the flattened list of points of
-``pose_regression.py``, does not depend on the order of the points: an object that a rotation ``g``
-maps onto itself looks the same in the poses ``R`` and ``R g``, as it does to a camera.
+rotation and perturbed by noise of a size drawn per sample, seen by the network as a blurred 3D
+occupancy grid (each point a Gaussian blob on a fixed grid of voxels). The grid, unlike the flattened
+list of points of ``pose_regression.py``, does not depend on the order of the points: an object that a
+rotation ``g`` maps onto itself looks the same in the poses ``R`` and ``R g``, as it does to a camera.
 
 - ``asymmetric``: a generic cloud; its pose is determined by what the network sees.
 - ``symmetric``: the orbit of a generic cloud under the quarter-turns about z (the group C4): the
