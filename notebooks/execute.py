@@ -17,7 +17,13 @@ import nbformat
 from nbclient import NotebookClient
 
 HERE = Path(__file__).resolve().parent
-NOTEBOOKS = ("fit_orientation", "pose_regression", "robot_orientation", "orientation_on_manifold")
+NOTEBOOKS = (
+    "fit_orientation",
+    "pose_regression",
+    "robot_orientation",
+    "orientation_on_manifold",
+    "probabilistic_pose",
+)
 
 
 def execute(name: str, timeout: int = 900) -> nbformat.NotebookNode:
