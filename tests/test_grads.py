@@ -15,6 +15,7 @@ from cases import (
     CASES,
     CASES_BY_NAME,
     EDGE_CASES,
+    GRAD_DTYPE,
     Case,
     Op,
     base_rows,
@@ -195,9 +196,10 @@ def test_torch_gradcheck_and_gradgradcheck(op: Op, backend: Backend, dtype: str,
 @gradients
 @base_rows
 def test_jax_check_grads(op: Op, backend: Backend, dtype: str) -> None:
-    """``check_grads`` to second order, forward and reverse, at every edge case where the op is smooth,
-    all in one batch (each element is checked on its own: the ops are row by row, and check_grads
-    compares the directional derivatives element by element). Eager, not compiled: jax dispatches
+    """``check_grads`` to second order, forward and reverse (the second order in
+    ``op.second_order_modes``), at every edge case where the op is smooth, all in one batch (each
+    element is checked on its own: the ops are row by row, and check_grads compares the directional
+    derivatives element by element). Eager, not compiled: jax dispatches
     eager operations at a cost per call, not per element, so one batch costs what one case did, while
     compiling the jvp, vjp and second-order programs took 15-60 s per op and shape. A failure is
     traced back to the case it is in."""
@@ -206,7 +208,11 @@ def test_jax_check_grads(op: Op, backend: Backend, dtype: str) -> None:
     fn = op.gradient_function(backend.module)
 
     def check(xs: list[np.ndarray]) -> None:
-        check_grads(fn, tuple(jnp.asarray(x) for x in xs), order=2, modes=("fwd", "rev"), eps=1e-6)
+        args = tuple(jnp.asarray(x) for x in xs)
+        check_grads(fn, args, order=2, modes=op.second_order_modes, eps=1e-6)
+        first_only = tuple(m for m in ("fwd", "rev") if m not in op.second_order_modes)
+        if first_only:
+            check_grads(fn, args, order=1, modes=first_only, eps=1e-6)
 
     try:
         check([np.concatenate(p) for p in zip(*parts, strict=True)])
@@ -369,12 +375,13 @@ def test_jax_matrix_to_quaternion_kernels_differentiate_as_the_formula(scalar_fi
     check_grads(formula, (m[-16:],), order=2, modes=("fwd", "rev"), eps=1e-6)
 
 
-@only(backend=lambda b: b in ("torch", "jax"))
+@only(backend=lambda b: b in ("torch", "jax"), dtype=lambda d: d != GRAD_DTYPE)
 def test_gradient_is_finite_in_every_dtype(op: Op, backend: Backend, dtype: str) -> None:
-    """The float64 checks above prove gradients right; this proves them finite where users train, in
-    float32 and half precision too: at norms near the ends of the dtype's range the intermediate
-    derivatives of a careless formula overflow (d(1/n2)/dn2 = -1/n2^2 does at |q| ~ 1e-10 in float32).
-    Every case the op applies to, in one batch (one compilation per op and dtype for jax)."""
+    """The float64 checks above prove gradients right, and finite at every case (the finite-difference
+    test asserts it before comparing); this proves them finite where users train, in float32 and half
+    precision: at norms near the ends of the dtype's range the intermediate derivatives of a careless
+    formula overflow (d(1/n2)/dn2 = -1/n2^2 does at |q| ~ 1e-10 in float32). Every case the op applies
+    to, in one batch (one compilation per op and dtype for jax)."""
     cases = [c for c in CASES if op.applies(c) and op.finite_gradient(c, dtype) and c.quaternions(dtype).size]
     sizes, batches = [], []
     for case in cases:
