@@ -9,6 +9,8 @@ nothing else.
 
 from __future__ import annotations
 
+import importlib
+import pkgutil
 from collections.abc import Callable
 from types import ModuleType
 from typing import Any
@@ -29,3 +31,16 @@ def public_dir(namespace: dict[str, Any]) -> Callable[[], list[str]]:
         return sorted({*namespace["__all__"], *submodules, *dunders})
 
     return __dir__
+
+
+def public_modules() -> list[ModuleType]:
+    """Every public module of diffquat, present and future: no part of its dotted name private (the
+    API reference and tests/test_api.py walk these)."""
+    import diffquat
+
+    names = ["diffquat"] + [
+        m.name
+        for m in pkgutil.walk_packages(diffquat.__path__, "diffquat.")
+        if not any(part.startswith("_") for part in m.name.split("."))
+    ]
+    return [importlib.import_module(n) for n in names]

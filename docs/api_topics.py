@@ -10,9 +10,7 @@ in ``diffquat.torch.nn`` and ``diffquat.jax.nn``) is placed once.
 
 from __future__ import annotations
 
-import importlib
-import pkgutil
-from types import ModuleType
+from diffquat._public import public_modules
 
 TOPICS: dict[str, list[str]] = {
     "Quaternions and rotation matrices": [
@@ -106,18 +104,6 @@ TOPICS: dict[str, list[str]] = {
     "Types": ["EulerConvention", "MeanMethod", "Representation", "Rotation6DLayout", "Side"],
     "Version": ["__version__"],
 }
-
-
-def public_modules() -> list[ModuleType]:
-    """Every public module of diffquat: none of the parts of its dotted name private."""
-    import diffquat
-
-    names = ["diffquat"] + [
-        m.name
-        for m in pkgutil.walk_packages(diffquat.__path__, "diffquat.")
-        if not any(part.startswith("_") for part in m.name.split("."))
-    ]
-    return [importlib.import_module(n) for n in names]
 
 
 def topic_of() -> dict[str, str]:

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _sizes import figure_dir, small_mode
 
 import diffquat.numpy as dqn
 
@@ -33,18 +34,6 @@ class Problem:
     targets: np.ndarray  # (..., n, 3): true_rotation @ points + noise, in the global frame
     true_quaternion: np.ndarray  # (..., 4) w, x, y, z
     start: np.ndarray  # (..., 4) the initial guess, not normalised
-
-
-def small_mode() -> bool:
-    """``DIFFQUAT_SMALL=1``: the sizes the test suite runs the notebooks with."""
-    return os.environ.get("DIFFQUAT_SMALL") == "1"
-
-
-def figure_dir() -> Path:
-    """Where figures go: ``$DIFFQUAT_FIGURES``, or ``notebooks/figures`` next to this file."""
-    out = Path(os.environ.get("DIFFQUAT_FIGURES", Path(__file__).resolve().parent / "figures"))
-    out.mkdir(parents=True, exist_ok=True)
-    return out
 
 
 def make_problem(

@@ -27,21 +27,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _sizes import figure_dir, small_mode
 
 import diffquat.numpy as dqn
-
-
-def small_mode() -> bool:
-    """``DIFFQUAT_SMALL=1``: the sizes the test suite runs the notebooks with."""
-    return os.environ.get("DIFFQUAT_SMALL") == "1"
-
-
-def figure_dir() -> Path:
-    """Where figures go: ``$DIFFQUAT_FIGURES``, or ``notebooks/figures`` next to this file."""
-    out = Path(os.environ.get("DIFFQUAT_FIGURES", Path(__file__).resolve().parent / "figures"))
-    out.mkdir(parents=True, exist_ok=True)
-    return out
-
 
 # ---------------------------------------------------------------------------------------------------
 # The problem

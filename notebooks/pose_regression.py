@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _sizes import figure_dir, small_mode
 
 import diffquat.numpy as dqn
 
@@ -46,14 +47,7 @@ SMALL = Config(hidden=32, steps=60, batch=32, n_test=256)
 
 def config_from_env() -> Config:
     """The full-size run, or with ``DIFFQUAT_SMALL=1`` the small one the test suite executes."""
-    return SMALL if os.environ.get("DIFFQUAT_SMALL") == "1" else FULL
-
-
-def figure_dir() -> Path:
-    """Where figures go: ``$DIFFQUAT_FIGURES``, or ``notebooks/figures`` next to this file."""
-    out = Path(os.environ.get("DIFFQUAT_FIGURES", Path(__file__).resolve().parent / "figures"))
-    out.mkdir(parents=True, exist_ok=True)
-    return out
+    return SMALL if small_mode() else FULL
 
 
 def point_cloud(config: Config) -> np.ndarray:

@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from _sizes import figure_dir, small_mode
 
 import diffquat.numpy as dqn
 
@@ -62,14 +63,7 @@ SMALL = Config(grid=5, hidden=32, steps=40, batch=32, n_test=128, n_samples=16)
 
 def config_from_env() -> Config:
     """The full-size run, or with ``DIFFQUAT_SMALL=1`` the small one the test suite executes."""
-    return SMALL if os.environ.get("DIFFQUAT_SMALL") == "1" else FULL
-
-
-def figure_dir() -> Path:
-    """Where figures go: ``$DIFFQUAT_FIGURES``, or ``notebooks/figures`` next to this file."""
-    out = Path(os.environ.get("DIFFQUAT_FIGURES", Path(__file__).resolve().parent / "figures"))
-    out.mkdir(parents=True, exist_ok=True)
-    return out
+    return SMALL if small_mode() else FULL
 
 
 # --------------------------------------------------------------------------------------------------

@@ -5,7 +5,6 @@ from __future__ import annotations
 import importlib
 import inspect
 import itertools
-import pkgutil
 import subprocess
 import sys
 import typing
@@ -20,6 +19,7 @@ import diffquat.numpy as dqn  # importing a backend registers every op's shapes
 from diffquat import _types
 from diffquat._backend import format_shape
 from diffquat._core import SHAPES
+from diffquat._public import public_modules
 
 N_POINTS = 5  # the size given to a "-1" (any size, e.g. N points) in a registered trailing shape
 
@@ -248,18 +248,6 @@ def test_ci_runs_the_readme_test_command() -> None:
     test_command = blocks[1]
     assert "pytest" in test_command and "ruff" in test_command and "mypy" in test_command
     assert test_command in (root / ".ci" / "run").read_text().splitlines()
-
-
-def public_modules() -> list[ModuleType]:
-    """Every public module of the package, present and future: no part of its dotted name private."""
-    import diffquat
-
-    names = ["diffquat"] + [
-        m.name
-        for m in pkgutil.walk_packages(diffquat.__path__, "diffquat.")
-        if not any(part.startswith("_") for part in m.name.split("."))
-    ]
-    return [importlib.import_module(n) for n in names]
 
 
 def test_the_public_modules_are_found() -> None:

@@ -24,13 +24,16 @@ QUICK_OPS = (
 )
 
 
+def run_benchmark(module: str, out: Path, *args: str) -> None:
+    """``python -m benchmarks.<module> --quick <args> --out <out>`` from the repository root."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    command = [sys.executable, "-m", f"benchmarks.{module}", "--quick", *args, "--out", str(out)]
+    subprocess.run(command, cwd=ROOT, env=env, check=True, capture_output=True, timeout=600)
+
+
 def test_quick_benchmark_writes_results(tmp_path: Path) -> None:
     pytest.importorskip("matplotlib")
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    command = [sys.executable, "-m", "benchmarks.run", "--quick", "--ops", ",".join(QUICK_OPS)]
-    subprocess.run(
-        [*command, "--out", str(tmp_path)], cwd=ROOT, env=env, check=True, capture_output=True, timeout=600
-    )
+    run_benchmark("run", tmp_path, "--ops", ",".join(QUICK_OPS))
     text = (tmp_path / "RESULTS.md").read_text()
     for heading in (*(f"## {name}\n" for name in QUICK_OPS), "### forward + backward"):
         assert heading in text
@@ -44,11 +47,7 @@ def test_quick_averaging_benchmark_writes_results(tmp_path: Path) -> None:
     """The rotation-averaging benchmark (``benchmarks.averaging --quick``): every diffquat method has a
     row in the end-to-end table and in the optimiser-step table; peers that are not installed are
     named as skipped."""
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    subprocess.run(
-        [sys.executable, "-m", "benchmarks.averaging", "--quick", "--out", str(tmp_path)],
-        cwd=ROOT, env=env, check=True, capture_output=True, timeout=600,
-    )  # fmt: skip
+    run_benchmark("averaging", tmp_path)
     text = (tmp_path / "AVERAGING.md").read_text()
     for heading in ("## End to end:", "## pypose (dense Jacobian) beside diffquat:", "## One optimiser step"):
         assert heading in text
@@ -76,11 +75,7 @@ def test_quick_means_benchmark_writes_results(tmp_path: Path) -> None:
     import json
     import math
 
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    subprocess.run(
-        [sys.executable, "-m", "benchmarks.means", "--quick", "--out", str(tmp_path)],
-        cwd=ROOT, env=env, check=True, capture_output=True, timeout=600,
-    )  # fmt: skip
+    run_benchmark("means", tmp_path)
     text = (tmp_path / "MEANS.md").read_text()
     for function in ("rotation_mean[chordal]", "rotation_mean[geodesic]", "rotation_mean[geodesic_l1]"):
         for mode in ("forward", "forward + backward"):
@@ -130,13 +125,9 @@ def test_gpu_benchmark_runs_and_renders_into_results(tmp_path: Path) -> None:
     pytest.importorskip("matplotlib")
     import json
 
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     cpu = json.loads((ROOT / "benchmarks" / "results.json").read_text())
     (tmp_path / "results.json").write_text(json.dumps(cpu))
-    subprocess.run(
-        [sys.executable, "-m", "benchmarks.gpu", "--quick", "--device", "cpu", "--out", str(tmp_path)],
-        cwd=ROOT, env=env, check=True, capture_output=True, timeout=600,
-    )  # fmt: skip
+    run_benchmark("gpu", tmp_path, "--device", "cpu")
     gpu = json.loads((tmp_path / "gpu.json").read_text())
     for name in ("quaternion_to_matrix", "matrix_to_quaternion"):
         timings = gpu["ops"][name]["timings"]["forward + backward"]["64"]
@@ -160,11 +151,7 @@ def test_quick_fisher_benchmark_writes_results(tmp_path: Path) -> None:
     figure), diffquat within 1e-9."""
     import json
 
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    subprocess.run(
-        [sys.executable, "-m", "benchmarks.fisher", "--quick", "--out", str(tmp_path)],
-        cwd=ROOT, env=env, check=True, capture_output=True, timeout=600,
-    )  # fmt: skip
+    run_benchmark("fisher", tmp_path)
     text = (tmp_path / "FISHER.md").read_text()
     for fragment in ("## Accuracy", "## Time per call", "| value + gradient: diffquat torch eager |"):
         assert fragment in text
