@@ -41,24 +41,24 @@ from typing import Any
 
 from ._algebra import (
     axis_angle_to_matrix,
-    axis_angle_to_quaternion,
+    exp_components,
     hamilton,
     match_rank,
     matrix_to_axis_angle,
-    nonzero_or_identity,
     quaternion_to_axis_angle,
 )
 from ._core import (
     Conversion,
+    cancelling_factor,
     computed_once,
     join_quaternion,
     matrix_to_quaternion,
     nonfinite_by_arithmetic,
     op,
     quaternion_to_matrix,
-    split_quaternion,
     stack_matrix,
     unstack_quaternion,
+    xyzw_to_wxyz,
 )
 
 SIDES = ("right", "left")
@@ -396,17 +396,29 @@ def so3_minus(
 
 
 def _unit(xp: Any, q: Any, scalar_first: bool) -> tuple[Any, Any, Any, Any]:
-    """Components (w, x, y, z) of ``q / |q|``, the zero quaternion read as the identity. Divided by
-    the largest component before the norm is taken (as ``_core._unit_components`` does), so that no
-    derivative meets a power of ``1 / |q|^2``, which overflows float32 at small norms; that component
-    is at least ``|q| / 2 > 0`` once the zero quaternion is the identity."""
-    w, x, y, z = nonzero_or_identity(xp, *unstack_quaternion(xp, q, scalar_first))
-    big = xp.maximum(xp.maximum(xp.abs(w), xp.abs(x)), xp.maximum(xp.abs(y), xp.abs(z)))
-    w, x, y, z = w / big, x / big, y / big, z / big
-    inv = 1.0 / xp.sqrt(w * w + x * x + y * y + z * z)
-    return w * inv, x * inv, y * inv, z * inv
+    """Components (w, x, y, z) of ``q / |q|``, the zero quaternion (squared norm below the smallest
+    normal number, as ``nonzero_or_identity``) read as the identity. Divided by the largest component
+    before the norm is taken (as ``_core._unit_components`` does), so that no derivative meets a power
+    of ``1 / |q|^2``, which overflows float32 at small norms. On the ``(..., 4)`` array, not component
+    by component: a quarter of the operations, which is what torch's eager time at small N is made
+    of. The scale cancels out of the result, so it is not differentiated (``cancelling_factor``).
+    The zero quaternion gets the factor 0 and then w = 1: a selection, with a zero derivative.
+    Scalar-last input is reordered first, so that the sums over the last axis add in one order and
+    both storage orders give the very same numbers."""
+    if not scalar_first:
+        q = xyzw_to_wxyz(xp, q)
+    zero = xp.sum(q * q, axis=-1, keepdims=True) < xp.finfo(q.dtype).tiny
+    big = cancelling_factor(xp, xp.amax(xp.abs(q), axis=-1, keepdims=True))
+    scaled = q / xp.where(zero, 1.0, big)
+    s2 = xp.sum(scaled * scaled, axis=-1, keepdims=True)
+    # 1 <= s2 <= 4 where it is used (the largest component is 1); the discarded branch sees 1.
+    unit = scaled * xp.where(zero, 0.0, 1.0 / xp.sqrt(xp.where(zero, 1.0, s2)))
+    w, x, y, z = unstack_quaternion(xp, unit, True)
+    return xp.where(zero[..., 0], 1.0, w), x, y, z
 
 
+# NaN or inf in q reaches every component through the norm, and in delta through the angle.
+@nonfinite_by_arithmetic
 @op(q=(4,), delta=(3,))
 def quaternion_plus(xp: Any, q: Any, delta: Any, *, side: str = "right", scalar_first: bool = True) -> Any:
     """A quaternion perturbed by a rotation vector: ``q exp(d)`` (``side="right"``) or ``exp(d) q``
@@ -427,11 +439,12 @@ def quaternion_plus(xp: Any, q: Any, delta: Any, *, side: str = "right", scalar_
     right = check_side("quaternion_plus", side)
     q, delta = match_rank(xp, q, delta)
     unit = _unit(xp, q, scalar_first)
-    step = split_quaternion(axis_angle_to_quaternion(xp, delta), True)
+    step = exp_components(xp, delta)
     out = hamilton(unit, step) if right else hamilton(step, unit)
     return join_quaternion(xp, *out, scalar_first)
 
 
+@nonfinite_by_arithmetic  # through the norms of q1 and q2 (see quaternion_plus), then the angle
 @op(q1=(4,), q2=(4,))
 def quaternion_minus(xp: Any, q1: Any, q2: Any, *, side: str = "right", scalar_first: bool = True) -> Any:
     """The rotation vector from one quaternion to another: ``log(q2* q1)`` (``side="right"``) or
