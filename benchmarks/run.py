@@ -814,7 +814,14 @@ def render(results: dict[str, Any], gpu_results: dict[str, Any] | None = None) -
     out = [
         "# Benchmark results",
         "",
-        "Written by `python -m benchmarks.run" + (" --quick" if results["quick"] else "") + "`; "
+        "Written by `python -m benchmarks.run"
+        + (" --quick" if results["quick"] else "")
+        + (
+            " --sizes " + ",".join(str(n) for n in results["sizes"])
+            if tuple(results["sizes"]) not in (FULL_SIZES, QUICK_SIZES)
+            else ""
+        )
+        + "`; "
         "do not edit by hand. float32, CPU. Each cell: median time per call, and in parentheses the "
         "fraction of the memory-bandwidth bound (the roofline row's time over this one's) where N >= 4096. "
         "Medians over interleaved blocks; the first call (warm-up, compilation) is in its own table.",
