@@ -686,10 +686,13 @@ def _fmt_overhead(first: float, median: float) -> str:
     return "≈ 0 (below noise)" if first <= median else _fmt_time(first - median)
 
 
-def run(quick: bool, out_dir: Path, only: list[str] | None = None) -> dict[str, Any]:
+def run(
+    quick: bool, out_dir: Path, only: list[str] | None = None, sizes: tuple[int, ...] | None = None
+) -> dict[str, Any]:
     import torch
 
-    sizes = QUICK_SIZES if quick else FULL_SIZES
+    if sizes is None:
+        sizes = QUICK_SIZES if quick else FULL_SIZES
     # Medians over 7 blocks of >= 30 ms: a 2-core shared machine is noisy (spreads of 100% and more
     # between 3 blocks of 10 ms).
     repeats, block_s = (3, 0.002) if quick else (7, 0.03)
@@ -811,7 +814,14 @@ def render(results: dict[str, Any], gpu_results: dict[str, Any] | None = None) -
     out = [
         "# Benchmark results",
         "",
-        "Written by `python -m benchmarks.run" + (" --quick" if results["quick"] else "") + "`; "
+        "Written by `python -m benchmarks.run"
+        + (" --quick" if results["quick"] else "")
+        + (
+            " --sizes " + ",".join(str(n) for n in results["sizes"])
+            if tuple(results["sizes"]) not in (FULL_SIZES, QUICK_SIZES)
+            else ""
+        )
+        + "`; "
         "do not edit by hand. float32, CPU. Each cell: median time per call, and in parentheses the "
         "fraction of the memory-bandwidth bound (the roofline row's time over this one's) where N >= 4096. "
         "Medians over interleaved blocks; the first call (warm-up, compilation) is in its own table.",
@@ -946,11 +956,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent)
     parser.add_argument("--ops", help="comma-separated operation names (default: all)")
     parser.add_argument("--merge", type=Path, nargs="+", help="render one report from these results.json")
+    parser.add_argument("--sizes", help="comma-separated batch sizes N (default: the full or the quick grid)")
     args = parser.parse_args(argv)
     if args.merge:
         write(merge(args.merge), args.out)
         return
-    run(args.quick, args.out, args.ops.split(",") if args.ops else None)
+    sizes = tuple(int(n) for n in args.sizes.split(",")) if args.sizes else None
+    run(args.quick, args.out, args.ops.split(",") if args.ops else None, sizes)
 
 
 if __name__ == "__main__":

@@ -181,7 +181,14 @@ def axis_angle_to_quaternion(xp: Any, axis_angle: Any, *, scalar_first: bool = T
         of R^3. Gradients are exact at the zero vector (a series, not ``sin(x) / x``).
     """
     vx, vy, vz = axis_angle[..., 0], axis_angle[..., 1], axis_angle[..., 2]
-    t2 = vx * vx + vy * vy + vz * vz  # angle^2: smooth at 0, unlike the angle itself
+    w, k = exp_factors(xp, vx * vx + vy * vy + vz * vz)  # angle^2: smooth at 0, unlike the angle
+    return join_quaternion(xp, w, k * vx, k * vy, k * vz, scalar_first)
+
+
+def exp_factors(xp: Any, t2: Any) -> tuple[Any, Any]:
+    """``(cos(t / 2), sin(t / 2) / t)`` of ``t2 = t^2``: the quaternion of a rotation vector ``v`` with
+    ``|v|^2 = t2`` is ``(w, k v)``. Written once for :func:`axis_angle_to_quaternion` and
+    ``quaternion_plus`` (which keeps ``v`` as one array)."""
     small = t2 < series_threshold(xp, t2.dtype)
     # Double where: the closed forms see a safe angle in the branch that is thrown away, so that the
     # derivative of sqrt at 0 (inf) never meets a zero cotangent.
@@ -192,7 +199,7 @@ def axis_angle_to_quaternion(xp: Any, axis_angle: Any, *, scalar_first: bool = T
     u = xp.where(small, t2, 0.0)
     w = xp.where(small, 1.0 - u / 8.0 + u * u / 384.0, xp.cos(half))
     k = xp.where(small, 0.5 - u / 48.0 + u * u / 3840.0, xp.sin(half) / angle)
-    return join_quaternion(xp, w, k * vx, k * vy, k * vz, scalar_first)
+    return w, k
 
 
 def _canonical_components(xp: Any, q: Any, scalar_first: bool) -> Components:

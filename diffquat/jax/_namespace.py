@@ -15,10 +15,12 @@ def _repeat(count: int, step: Callable[[Any], Any], state: Any) -> Any:
 
 class _Namespace:
     """``jax.numpy``, with XLA's ``optimization_barrier``, which :func:`diffquat._core.computed_once`
-    uses to keep a value that many outputs share from being recomputed in each of them, and
+    uses to keep a value that many outputs share from being recomputed in each of them,
+    ``stop_gradient`` (:func:`diffquat._core.cancelling_factor`), and
     ``diffquat_repeat`` (a fixed number of steps as one loop, see :func:`diffquat._statistics.repeat`)."""
 
     optimization_barrier = staticmethod(jax.lax.optimization_barrier)
+    stop_gradient = staticmethod(jax.lax.stop_gradient)
     diffquat_repeat = staticmethod(_repeat)
 
     def __getattr__(self, name: str) -> Any:
