@@ -23,7 +23,6 @@ import numpy as np
 import pytest
 import torch
 from cases import CASES, DTYPES, OPS
-from jax._src import lru_cache as _lru_cache
 
 
 def _swap_in_kernels(path: str) -> None:
@@ -63,31 +62,6 @@ if _JAX_CACHE_OWNER:
 jax.config.update("jax_compilation_cache_dir", os.environ["DIFFQUAT_TEST_JAX_CACHE"])
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-
-
-def _put_whole(put: Callable[..., None]) -> Callable[..., None]:
-    """jax's unbounded file cache writes an entry in place (``write_bytes``), and two workers that
-    compile the same program write the same file at once: a reader can then get a mix of the two
-    writes that decompresses, and XLA crashed deserialising it (a segfault, and once an abort, in a
-    worker of a full run). Each entry is written to a file of its own and renamed into place
-    (atomic on one filesystem), so a reader sees a whole entry or none. The bounded cache's own
-    file lock (not used here: see above) is left to jax."""
-
-    def whole(self: Any, key: str, value: bytes) -> None:
-        if self.eviction_enabled or not key:
-            return put(self, key, value)
-        path = self.path / f"{key}{_lru_cache._CACHE_SUFFIX}"
-        if path.exists():
-            return None
-        part = path.with_name(f".{path.name}.{os.getpid()}")
-        part.write_bytes(value)
-        os.replace(part, path)
-        return None
-
-    return whole
-
-
-_lru_cache.LRUCache.put = _put_whole(_lru_cache.LRUCache.put)  # type: ignore[method-assign]
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:
