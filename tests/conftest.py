@@ -49,17 +49,20 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 jax.config.update("jax_numpy_rank_promotion", "raise")
 torch.set_default_dtype(torch.float32)
 
-# One persistent compilation cache for the session, shared by the xdist workers: jax compiles each
-# primitive it runs eagerly once per shape and dtype and process, and the workers run the same
-# primitives on the same shapes (a third of the jax tests' time was compiling what the other worker
-# had compiled). The directory is new for each session, so nothing carries over between runs. The
-# size is left unbounded: a bound turns on jax's file lock and a scan of the directory on every write,
-# which made the workers wait on each other. An entry read while the other worker is still writing it
-# is one jax cannot decompress: it warns and compiles (the warning is let through in pyproject.toml).
+# A persistent compilation cache for the session, one directory per xdist worker: jax compiles each
+# primitive it runs eagerly once per shape and dtype and process, and a worker's subprocesses (the
+# export tests) reuse what it compiled. The directory is new for each session, so nothing carries
+# over between runs. The size is left unbounded: a bound turns on jax's file lock and a scan of the
+# directory on every write. Not shared between the workers: an executable that one worker compiled
+# and the other deserialised crashed XLA (a segfault in two of three full runs, an abort in the
+# third, with entries written whole; jax 0.10.2), and a crashed worker fails the run.
 _JAX_CACHE_OWNER = "PYTEST_XDIST_WORKER" not in os.environ and "DIFFQUAT_TEST_JAX_CACHE" not in os.environ
 if _JAX_CACHE_OWNER:
     os.environ["DIFFQUAT_TEST_JAX_CACHE"] = tempfile.mkdtemp(prefix="diffquat-jax-cache-")
-jax.config.update("jax_compilation_cache_dir", os.environ["DIFFQUAT_TEST_JAX_CACHE"])
+jax.config.update(
+    "jax_compilation_cache_dir",
+    os.path.join(os.environ["DIFFQUAT_TEST_JAX_CACHE"], os.environ.get("PYTEST_XDIST_WORKER", "main")),
+)
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
