@@ -11,9 +11,7 @@ import importlib
 import importlib.util
 import itertools
 import os
-import shutil
 import sys
-import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -49,27 +47,9 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 jax.config.update("jax_numpy_rank_promotion", "raise")
 torch.set_default_dtype(torch.float32)
 
-# A persistent compilation cache for the session, one directory per xdist worker: jax compiles each
-# primitive it runs eagerly once per shape and dtype and process, and a worker's subprocesses (the
-# export tests) reuse what it compiled. The directory is new for each session, so nothing carries
-# over between runs. The size is left unbounded: a bound turns on jax's file lock and a scan of the
-# directory on every write. Not shared between the workers: an executable that one worker compiled
-# and the other deserialised crashed XLA (a segfault in two of three full runs, an abort in the
-# third, with entries written whole; jax 0.10.2), and a crashed worker fails the run.
-_JAX_CACHE_OWNER = "PYTEST_XDIST_WORKER" not in os.environ and "DIFFQUAT_TEST_JAX_CACHE" not in os.environ
-if _JAX_CACHE_OWNER:
-    os.environ["DIFFQUAT_TEST_JAX_CACHE"] = tempfile.mkdtemp(prefix="diffquat-jax-cache-")
-jax.config.update(
-    "jax_compilation_cache_dir",
-    os.path.join(os.environ["DIFFQUAT_TEST_JAX_CACHE"], os.environ.get("PYTEST_XDIST_WORKER", "main")),
-)
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-
-
-def pytest_unconfigure(config: pytest.Config) -> None:
-    if _JAX_CACHE_OWNER:
-        shutil.rmtree(os.environ.pop("DIFFQUAT_TEST_JAX_CACHE"), ignore_errors=True)
+# No persistent compilation cache (jax's default): with one, shared by the xdist workers or one per
+# worker, a worker died deserialising an entry (a segfault in XLA, in each of three full runs; jax
+# 0.10.2), which fails the run. jax's in-memory caches still serve repeats within a process.
 
 
 import jax.numpy as jnp  # noqa: E402
