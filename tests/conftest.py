@@ -7,6 +7,7 @@ an id that names them in that order: ``test_values[quaternion_to_matrix-torch-fl
 
 from __future__ import annotations
 
+import gc
 import importlib
 import importlib.util
 import itertools
@@ -47,13 +48,52 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 jax.config.update("jax_numpy_rank_promotion", "raise")
 torch.set_default_dtype(torch.float32)
 
-# No persistent compilation cache (jax's default): with one, shared by the xdist workers or one per
-# worker, a worker died deserialising an entry (a segfault in XLA, in each of three full runs; jax
-# 0.10.2), which fails the run. jax's in-memory caches still serve repeats within a process.
+# No persistent compilation cache (jax's default): the suite compiles each program once per worker.
 
 
 import jax.numpy as jnp  # noqa: E402
 import ml_dtypes  # noqa: E402
+
+# Every executable XLA compiles for the CPU keeps memory mappings of its own (its code and data) for
+# as long as jax's in-memory caches hold it, and a worker of this suite compiles tens of thousands of
+# programs (eager jax compiles each operation per shape and dtype; the derivative checks many shapes).
+# Past the kernel's limit on mappings per process (vm.max_map_count, 65530 by default) the next
+# mapping fails and XLA crashes in its compiler: a segfault, the worker lost, the run failed (seen in
+# test_grads.py after about 3000 jax tests in one process). So the caches are cleared when a worker's
+# mappings pass a third of the limit; the count is read (a scan of /proc/self/maps, a few ms at these
+# sizes) only after every _COMPILES_PER_CHECK compilations, which map far fewer than the margin.
+_COMPILES_PER_CHECK = 50
+_compiles = [0, 0]  # compilations so far, and at the last check
+
+
+def _count_compiles(event: str, duration: float, **_: Any) -> None:
+    if event == "/jax/core/compile/backend_compile_duration":
+        _compiles[0] += 1
+
+
+jax.monitoring.register_event_duration_secs_listener(_count_compiles)
+
+
+def _map_limit() -> int:
+    try:
+        with open("/proc/sys/vm/max_map_count") as f:
+            return int(f.read())
+    except (OSError, ValueError):  # not Linux: no such limit to keep under
+        return 0
+
+
+_MAP_LIMIT = _map_limit()
+
+
+def pytest_runtest_teardown(item: pytest.Item) -> None:
+    if not _MAP_LIMIT or _compiles[0] - _compiles[1] < _COMPILES_PER_CHECK:
+        return
+    _compiles[1] = _compiles[0]
+    with open("/proc/self/maps") as f:
+        mappings = sum(1 for _ in f)
+    if mappings > _MAP_LIMIT // 3:
+        jax.clear_caches()
+        gc.collect()
 
 
 @dataclass(frozen=True)
