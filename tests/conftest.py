@@ -48,20 +48,18 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 jax.config.update("jax_numpy_rank_promotion", "raise")
 torch.set_default_dtype(torch.float32)
 
-# No persistent compilation cache (jax's default): the suite compiles each program once per worker.
-
-
 import jax.numpy as jnp  # noqa: E402
 import ml_dtypes  # noqa: E402
 
-# Every executable XLA compiles for the CPU keeps memory mappings of its own (its code and data) for
-# as long as jax's in-memory caches hold it, and a worker of this suite compiles tens of thousands of
-# programs (eager jax compiles each operation per shape and dtype; the derivative checks many shapes).
-# Past the kernel's limit on mappings per process (vm.max_map_count, 65530 by default) the next
-# mapping fails and XLA crashes in its compiler: a segfault, the worker lost, the run failed (seen in
-# test_grads.py after about 3000 jax tests in one process). So the caches are cleared when a worker's
-# mappings pass a third of the limit; the count is read (a scan of /proc/self/maps, a few ms at these
-# sizes) only after every _COMPILES_PER_CHECK compilations, which map far fewer than the margin.
+# Every executable XLA compiles for the CPU keeps about 40 memory mappings (its code and data) for as
+# long as jax's in-memory caches hold it, and a worker of this suite compiles about 8000 programs
+# (eager jax compiles each operation per shape and dtype; the derivative checks many shapes). Past the
+# kernel's limit on mappings per process (vm.max_map_count, 65530 by default) the next mapping fails
+# and XLA crashes in its compiler: a segfault, the worker lost, the run failed (the jax tests of
+# test_grads.py alone, in one process, crashed after ~850 tests at 65531 mappings). So the caches are
+# cleared when a worker's mappings pass a third of the limit; the count is read (a scan of
+# /proc/self/maps, a few ms at these sizes) only after every _COMPILES_PER_CHECK compilations, which
+# map far fewer than the margin. No persistent compilation cache (jax's default): it did not pay here.
 _COMPILES_PER_CHECK = 50
 _compiles = [0, 0]  # compilations so far, and at the last check
 
