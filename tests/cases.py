@@ -14,6 +14,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+import ml_dtypes
 import mpmath
 import numpy as np
 from scipy import integrate, special
@@ -1403,3 +1404,21 @@ base_rows = only(op=lambda op: not op.variant_of)
 # Where the op is differentiable (e.g. not where a rotation vector jumps at pi): for the numerical
 # derivative checks (gradcheck, check_grads), which cannot pass across a jump.
 smooth = only(pair=lambda op, case: op.smooth_at(case))
+
+
+def value_batches(op: Op, dtype: str) -> tuple[list[np.ndarray], list[tuple[Case, slice, tuple[int, ...]]]]:
+    """The op's float64 inputs at every value case but the batch_* ones (whose point is their
+    shape), cast to ``dtype`` and back, flattened to one batch dimension and concatenated (rows are
+    independent), with each case's rows and batch shape: one call evaluates the op at every case."""
+    parts, rows, start = [], [], 0
+    for case in CASES:
+        if case.name.startswith("batch_") or not op.applies(case):
+            continue
+        batch = case.quaternions(dtype).shape[:-1]
+        host = ml_dtypes.bfloat16 if dtype == "bfloat16" else np.dtype(dtype)
+        with np.errstate(over="ignore"):  # beyond the dtype's range: inf, as the backends' casts give
+            xs = [x.astype(host).astype(np.float64) for x in op.inputs(case.quaternions(dtype))]
+        parts.append([x.reshape(-1, *x.shape[len(batch) :]) for x in xs])
+        rows.append((case, slice(start, start + int(np.prod(batch))), batch))
+        start = rows[-1][1].stop
+    return [np.concatenate(p) for p in zip(*parts, strict=True)], rows

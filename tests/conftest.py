@@ -43,6 +43,13 @@ if os.environ.get("DIFFQUAT_TEST_KERNELS"):
 # devices for the sharding tests (shard_map, pmap, sharded jit: tests/test_jax_deploy.py); it must be
 # set before anything starts jax's backend, and single-device programs still run on the first.
 jax.config.update("jax_num_cpu_devices", 2)
+# XLA's classic CPU emitters, not its default fusion emitters: compiling is most of what the jax tests
+# cost, and the classic emitters compile the same programs in about half the time (a jax-heavy third
+# of the suite: 366 s -> 250 s). The values do not depend on it: test_values.py checks every op at
+# every value case under the default emitters too, in a subprocess, against the same oracles. Read
+# when jax starts its CPU backend (at first use, below); a choice of the caller's is kept.
+if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_cpu_use_fusion_emitters=false".strip()
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 jax.config.update("jax_numpy_rank_promotion", "raise")

@@ -4,11 +4,17 @@ dtype and case in the table."""
 from __future__ import annotations
 
 import itertools
+import os
+import subprocess
+import sys
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 from cases import (
     CASES,
+    DTYPES,
+    OPS,
     ROUND_TRIP_TOL,
     VALUE_TOL,
     Case,
@@ -18,6 +24,7 @@ from cases import (
     oracle_normalize,
     oracle_quaternion_to_matrix,
     uniform_quaternions,
+    value_batches,
 )
 from conftest import Backend, case_rows
 
@@ -66,6 +73,12 @@ def max_error(actual: np.ndarray, expected: np.ndarray, up_to_sign: bool = False
 
 def test_values(op: Op, backend: Backend, dtype: str, case: Case) -> None:
     received, out = run(op, backend, dtype, case)
+    check_values(op, dtype, received, out)
+
+
+def check_values(op: Op, dtype: str, received: list[np.ndarray], out: np.ndarray) -> None:
+    """``out`` (float64), what the op gave for the float64 values ``received`` in ``dtype``, is the
+    oracle's within the op's tolerance."""
     expected = op.expected(*received)
     assert out.shape == expected.shape
     assert np.all(np.isfinite(out))
@@ -80,6 +93,54 @@ def test_values(op: Op, backend: Backend, dtype: str, case: Case) -> None:
         scale = np.reshape(scale, scale.shape + (1,) * (expected.ndim - scale.ndim))
         out, expected = out / scale, expected / scale
     assert max_error(out, expected, op.up_to_sign) <= tol(op, dtype)
+
+
+# What test_jax_values_hold_under_xlas_default_cpu_emitters runs in its subprocess: every op at every
+# value case, one call per op and dtype, saved as float64.
+_DEFAULT_EMITTERS = """
+import sys
+import jax
+import jax.numpy as jnp
+import numpy as np
+jax.config.update("jax_enable_x64", True)
+import diffquat.jax as dq
+from cases import DTYPES, OPS, value_batches
+out = {}
+for op in OPS:
+    for dtype in DTYPES:
+        xs, _ = value_batches(op, dtype)
+        y = op(dq, *(jnp.asarray(x, dtype=jnp.dtype(dtype)) for x in xs))
+        out[op.id + "|" + dtype] = np.asarray(y).astype(np.float64)
+np.savez(sys.argv[1], **out)
+"""
+
+
+def test_jax_values_hold_under_xlas_default_cpu_emitters(tmp_path: Path) -> None:
+    """The suite runs jax with XLA's classic CPU emitters, which compile in half the time
+    (tests/conftest.py); users run XLA's default fusion emitters. Every op at every value case, in
+    every dtype, evaluated by a jax that runs the defaults, is the oracle's within the tolerance of
+    test_values, so what test_values asserts holds on the default emitters too."""
+    flags = os.environ.get("XLA_FLAGS", "").replace("--xla_cpu_use_fusion_emitters=false", "")
+    path = tmp_path / "values.npz"
+    subprocess.run(
+        [sys.executable, "-c", _DEFAULT_EMITTERS, str(path)],
+        cwd=Path(__file__).parent,
+        env={**os.environ, "XLA_FLAGS": flags},
+        check=True,
+        timeout=900,
+    )
+    values, failures = np.load(path), []
+    for op in OPS:
+        for dtype in DTYPES:
+            xs, parts = value_batches(op, dtype)
+            out = values[f"{op.id}|{dtype}"]
+            for case, rows, batch in parts:
+                received = [x[rows].reshape(*batch, *x.shape[1:]) for x in xs]
+                try:
+                    check_values(op, dtype, received, out[rows].reshape(*batch, *out.shape[1:]))
+                except AssertionError as error:
+                    failures.append(f"{op.id} {dtype} {case.name}: {error}")
+    assert not failures, "\n".join(failures)
 
 
 @only(op=lambda op: op.output == "matrix")
