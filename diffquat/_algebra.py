@@ -15,9 +15,10 @@ from ._core import (
     computed_once,
     join_quaternion,
     matrix_to_quaternion,
+    nonfinite_by_arithmetic,
     op,
-    quaternion_to_matrix,
     split_quaternion,
+    unit_quaternion_to_matrix,
 )
 
 Components = tuple[Any, Any, Any, Any]
@@ -167,6 +168,9 @@ def quaternion_apply(xp: Any, q: Any, v: Any, *, scalar_first: bool = True) -> A
 # The rotation vector.
 
 
+# NaN or inf reaches every component through the squared angle (cos and sin of inf are NaN), so the
+# backends add no selection after it (a pass over the output per operation in eager torch).
+@nonfinite_by_arithmetic
 @op(axis_angle=(3,))
 def axis_angle_to_quaternion(xp: Any, axis_angle: Any, *, scalar_first: bool = True) -> Any:
     """Unit quaternion of a rotation vector (the exponential map).
@@ -240,8 +244,12 @@ def quaternion_to_axis_angle(xp: Any, q: Any, *, scalar_first: bool = True) -> A
     return xp.stack([k * x, k * y, k * z], axis=-1)
 
 
+# As so3_exp, the same map: every entry reads a component of the quaternion, NaN in a non-finite row.
+@nonfinite_by_arithmetic
 @op(axis_angle=(3,))
-def axis_angle_to_matrix(xp: Any, axis_angle: Any, *, to_matrix: Conversion = quaternion_to_matrix) -> Any:
+def axis_angle_to_matrix(
+    xp: Any, axis_angle: Any, *, to_matrix: Conversion = unit_quaternion_to_matrix
+) -> Any:
     """Rotation matrix of a rotation vector ``axis * angle``: shape ``(..., 3)`` to ``(..., 3, 3)``.
 
     Through the unit quaternion (Rodrigues' formula in half angles), so it is exact and smooth at the
