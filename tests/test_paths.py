@@ -14,6 +14,7 @@ one choice of pivot, first and second order, forward and reverse.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -447,6 +448,29 @@ def test_compiled_public_function_traces_to_the_core_formula(scalar_first: bool,
         # 16 bits: the upcast, the formula, the cast back, then the re-standardisation if canonical
         assert ours[0] == "to" and ours[1 : len(theirs) + 1] == theirs and ours[len(theirs) + 1] == "to"
         assert (len(ours) > len(theirs) + 2) == (core.__name__ in _core.CANONICAL)
+
+
+def test_the_nonfinite_row_rule_holds_under_inductor() -> None:
+    """The non-finite row rule finds the bad rows as sums of ``0 * x`` (NaN exactly where a NaN or an
+    infinity is). Compiled by inductor, as a user's compiled model runs it, the rule still makes
+    those rows NaN and leaves the others as they are, a row of huge finite entries (whose plain sum
+    would overflow) included: no folding of ``0 * x`` to 0."""
+    x = torch.randn(7, 3, 3, dtype=torch.float64)
+    x[0] = 1e308
+    x[1, 0, 2], x[3, 2, 2], x[4, 1, 1] = math.inf, -math.inf, math.nan
+    v = torch.randn(7, 3, dtype=torch.float64)
+    v[5, 0] = math.nan
+    v[6, 2] = -math.inf
+    out = torch.randn(7, 3, 3, dtype=torch.float64)
+
+    def rule(out: torch.Tensor, x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        return _backend.nonfinite_rows(torch, out, [(x, (3, 3)), (v, (3,))])  # type: ignore[no-any-return]
+
+    torch._dynamo.reset()
+    for fn in (rule, torch.compile(rule, fullgraph=True, dynamic=False)):
+        got = fn(out, x, v)
+        assert bool(torch.isnan(got[[1, 3, 4, 5, 6]]).all())
+        assert torch.equal(got[[0, 2]], out[[0, 2]])
 
 
 @pytest.mark.parametrize("scalar_first", [True, False], ids=["wxyz", "xyzw"])
