@@ -1406,19 +1406,41 @@ base_rows = only(op=lambda op: not op.variant_of)
 smooth = only(pair=lambda op, case: op.smooth_at(case))
 
 
-def value_batches(op: Op, dtype: str) -> tuple[list[np.ndarray], list[tuple[Case, slice, tuple[int, ...]]]]:
-    """The op's float64 inputs at every value case but the batch_* ones (whose point is their
-    shape), cast to ``dtype`` and back, flattened to one batch dimension and concatenated (rows are
-    independent), with each case's rows and batch shape: one call evaluates the op at every case."""
+# The backends' dtypes as NumPy dtypes, and the cast every test makes on the host.
+HOST_DTYPES = {
+    "float64": np.float64,
+    "float32": np.float32,
+    "float16": np.float16,
+    "bfloat16": ml_dtypes.bfloat16,
+}
+
+
+def host_cast(x: np.ndarray, dtype: Any) -> np.ndarray:
+    with np.errstate(over="ignore"):  # beyond the dtype's range: inf, as every backend's cast gives
+        return x.astype(np.dtype(dtype))
+
+
+def concatenate_cases(
+    cases: list[Case], batch_of: Callable[[Case], tuple[int, ...]], inputs: Callable[[Case], list[np.ndarray]]
+) -> tuple[list[np.ndarray], list[tuple[Case, slice, tuple[int, ...]]]]:
+    """The ``inputs`` of every case, flattened to one batch dimension and concatenated (rows are
+    independent, so one call evaluates an op at every case), with each case's rows and batch shape."""
     parts, rows, start = [], [], 0
-    for case in CASES:
-        if case.name.startswith("batch_") or not op.applies(case):
-            continue
-        batch = case.quaternions(dtype).shape[:-1]
-        host = ml_dtypes.bfloat16 if dtype == "bfloat16" else np.dtype(dtype)
-        with np.errstate(over="ignore"):  # beyond the dtype's range: inf, as the backends' casts give
-            xs = [x.astype(host).astype(np.float64) for x in op.inputs(case.quaternions(dtype))]
-        parts.append([x.reshape(-1, *x.shape[len(batch) :]) for x in xs])
+    for case in cases:
+        batch = batch_of(case)
+        parts.append([x.reshape(-1, *x.shape[len(batch) :]) for x in inputs(case)])
         rows.append((case, slice(start, start + int(np.prod(batch))), batch))
         start = rows[-1][1].stop
     return [np.concatenate(p) for p in zip(*parts, strict=True)], rows
+
+
+def value_batches(op: Op, dtype: str) -> tuple[list[np.ndarray], list[tuple[Case, slice, tuple[int, ...]]]]:
+    """:func:`concatenate_cases` of the op's float64 inputs at every value case but the batch_* ones
+    (whose point is their shape), cast to ``dtype`` and back."""
+    return concatenate_cases(
+        [c for c in CASES if not c.name.startswith("batch_") and op.applies(c)],
+        lambda c: c.quaternions(dtype).shape[:-1],
+        lambda c: [
+            host_cast(x, HOST_DTYPES[dtype]).astype(np.float64) for x in op.inputs(c.quaternions(dtype))
+        ],
+    )

@@ -21,7 +21,7 @@ import jax
 import numpy as np
 import pytest
 import torch
-from cases import CASES, DTYPES, OPS
+from cases import CASES, DTYPES, HOST_DTYPES, OPS, concatenate_cases, host_cast
 
 
 def _swap_in_kernels(path: str) -> None:
@@ -56,7 +56,6 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 torch.set_default_dtype(torch.float32)
 
 import jax.numpy as jnp  # noqa: E402
-import ml_dtypes  # noqa: E402
 
 # Every executable XLA compiles for the CPU keeps about 40 memory mappings (its code and data) for as
 # long as jax's in-memory caches hold it, and a worker of this suite compiles about 8000 programs
@@ -119,15 +118,10 @@ class Backend:
         return self.asarray(np.asarray(x, dtype=np.float64), self.dtypes[dtype])
 
 
-def _host_cast(x: np.ndarray, dtype: Any) -> np.ndarray:
-    with np.errstate(over="ignore"):  # beyond the dtype's range: inf, as every backend's cast gives
-        return x.astype(np.dtype(dtype))
-
-
 BACKENDS = {
     "numpy": Backend(
         "numpy",
-        {"float64": np.float64, "float32": np.float32, "float16": np.float16, "bfloat16": ml_dtypes.bfloat16},
+        HOST_DTYPES,
         lambda x, dt: x.astype(dt),
         lambda x: np.asarray(x).astype(np.float64),
         differentiable=False,
@@ -149,7 +143,7 @@ BACKENDS = {
         {"float64": jnp.float64, "float32": jnp.float32, "float16": jnp.float16, "bfloat16": jnp.bfloat16},
         # Cast on the host: a jax cast is a compiled program per shape and dtype, which made up a
         # third of the compilations of the value tests (numpy's casts round the same way).
-        lambda x, dt: jax.device_put(_host_cast(x, dt)),
+        lambda x, dt: jax.device_put(host_cast(x, dt)),
         lambda x: np.asarray(x).astype(np.float64),
         differentiable=True,
     ),
@@ -209,18 +203,11 @@ def rows_by_case(
         return compute(inputs(case), batch_of(case))
     if key not in _ROWS:
         cases = [c for c in CASES if not c.name.startswith("batch_") and applies(c)]
-        batches = [batch_of(c) for c in cases]
-        flat = [
-            [x.reshape(-1, *x.shape[len(batch) :]) for x in inputs(c)]
-            for c, batch in zip(cases, batches, strict=True)
-        ]
-        concatenated = [np.concatenate(p) for p in zip(*flat, strict=True)]
+        concatenated, parts = concatenate_cases(cases, batch_of, inputs)
         outs = compute(concatenated, (len(concatenated[0]),))
-        _ROWS[key], start = {}, 0
-        for c, batch in zip(cases, batches, strict=True):
-            rows = slice(start, start + int(np.prod(batch)))
-            start = rows.stop
-            _ROWS[key][c.name] = [o[rows].reshape(*batch, *o.shape[1:]) for o in outs]
+        _ROWS[key] = {
+            c.name: [o[rows].reshape(*batch, *o.shape[1:]) for o in outs] for c, rows, batch in parts
+        }
     return _ROWS[key][case.name]
 
 
