@@ -37,18 +37,20 @@ def _linearised(forward: Callable[[Any, Tensor], Tensor], tangent: Formula, x: T
     are those of the rules: the form for graph capture (compiled, traced), where a Function's own
     rules are not all honoured.
 
-    With ``x0 = x.detach()``, ``y0 = forward(x0)``, ``dx = x - x0`` (zero in value, the identity in
-    derivative) and ``T(x, y, dx)`` the tangent, linear in ``dx``:
+    With ``x0 = x.detach()``, ``y0 = forward(x0)``, ``e = x - x0`` (zero in value, the identity in
+    derivative) and ``T(x, y, e)`` the tangent, linear in ``e`` and exact on solutions (``T(x, y(x),
+    .) = y'(x)``), the midpoint rule ``y(x0 + e) = y0 + y'(x0 + e / 2) e + O(e^3)``:
 
-    - ``g = y0 + T(x, y0, dx)``: every term of ``g'`` but ``T(x, y0, .)`` is multiplied by ``dx = 0``,
-      so ``g' = y'``, exact to first order.
-    - ``h = y0 + (T(x, g, dx) + T(x0, y0, dx)) / 2``: the first derivative is still ``y'``. The second
-      derivative of ``T(x, g, dx)`` meets each mixed term ``S(d, e) = T_x(x, y, d)[e] + T_y(x, y,
-      d)[y' e]`` twice, once with ``dx`` in each slot, and ``S(d, e) + S(e, d) = 2 y''[d, e]`` (y'' is
-      symmetric); ``T(x0, y0, dx)`` is linear in ``x``. The half gives ``y''`` exactly.
+    - ``m = x0 + e / 2`` and ``g = y0 + T(m, y0, e / 2)``: ``y(m)`` to first order.
+    - ``h = y0 + T(m, g, e)``: its Taylor polynomial in ``e`` is ``y0 + T(x0, y0, e) + S(e / 2, e)``
+      with ``S(d, e) = T_x(x0, y0, e)[d] + T_y(x0, y0, e)[y' d] = y''[d, e]`` (the derivative of
+      ``T(x, y(x), e) = y'(x) e``), i.e. ``y0 + y' e + y''[e, e] / 2``: exact to second order; the
+      error of ``g`` (second order) is multiplied by ``e`` again.
 
-    The value stays ``y0``: ``T(x, y, 0) = 0`` (a linear solve of zero). Third derivatives are not
-    those of the map; the eager Function is exact to every order."""
+    Two evaluations of the tangent (a third, for the same order, doubled the compile time of the
+    geodesic means). The value stays ``y0``, bit for bit: ``e = 0``, ``m = x0`` and ``T(x, y, 0) = 0``
+    (a linear solve of zero). The first derivative is ``T(x0, y0, .)``, the rule itself; third
+    derivatives are not those of the map, the eager Function is exact to every order."""
     x0 = x.detach()
     dx = x - x0
     y0 = forward(torch, x0)
@@ -57,8 +59,9 @@ def _linearised(forward: Callable[[Any, Tensor], Tensor], tangent: Formula, x: T
     # exactly 0 and broadcasts against y0 ((..., 3, 1) for a matrix, (..., 1) for a vector): dx's axes
     # past y0's leading ones are summed (a mean of samples (..., N, 5) -> (..., 4) sums N too).
     y0 = y0 + 0 * dx.flatten(y0.ndim - 1).sum(-1, keepdim=True)
-    g = y0 + tangent(torch, x, y0, dx)
-    return y0 + 0.5 * (tangent(torch, x, g, dx) + tangent(torch, x0, y0, dx))
+    m = x0 + 0.5 * dx
+    g = y0 + tangent(torch, m, y0, 0.5 * dx)
+    return y0 + tangent(torch, m, g, dx)
 
 
 def _opaque(
