@@ -687,19 +687,25 @@ def _fmt_overhead(first: float, median: float) -> str:
 
 
 def run(
-    quick: bool, out_dir: Path, only: list[str] | None = None, sizes: tuple[int, ...] | None = None
+    quick: bool,
+    out_dir: Path,
+    only: list[str] | None = None,
+    sizes: tuple[int, ...] | None = None,
+    repeats: int | None = None,
 ) -> dict[str, Any]:
     import torch
 
     if sizes is None:
         sizes = QUICK_SIZES if quick else FULL_SIZES
     # Medians over 7 blocks of >= 30 ms: a 2-core shared machine is noisy (spreads of 100% and more
-    # between 3 blocks of 10 ms).
-    repeats, block_s = (3, 0.002) if quick else (7, 0.03)
+    # between 3 blocks of 10 ms). More blocks (--repeats) for ratios near 1: two runs of 7 moved a
+    # ratio of microsecond calls (N = 1) by up to 0.3.
+    default_repeats, block_s = (3, 0.002) if quick else (7, 0.03)
+    repeats = repeats or default_repeats
     ops = [op for op in build_ops(quick) if only is None or op.name in only]
     load_before = os.getloadavg()
     started = time.time()
-    results: dict[str, Any] = {"quick": quick, "sizes": list(sizes), "ops": {}}
+    results: dict[str, Any] = {"quick": quick, "sizes": list(sizes), "repeats": repeats, "ops": {}}
     for op in ops:
         traffic = WIDTH[op.source] + WIDTH[op.target]
         entry: dict[str, Any] = {"skipped": op.skipped, "timings": {}, "accuracy": {}}
@@ -821,10 +827,12 @@ def render(results: dict[str, Any], gpu_results: dict[str, Any] | None = None) -
             if tuple(results["sizes"]) not in (FULL_SIZES, QUICK_SIZES)
             else ""
         )
+        + (f" --repeats {results['repeats']}" if results.get("repeats", 7) not in (3, 7) else "")
         + "`; "
         "do not edit by hand. float32, CPU. Each cell: median time per call, and in parentheses the "
         "fraction of the memory-bandwidth bound (the roofline row's time over this one's) where N >= 4096. "
-        "Medians over interleaved blocks; the first call (warm-up, compilation) is in its own table.",
+        f"Medians over {results.get('repeats', 'several')} interleaved blocks; the first call (warm-up, "
+        "compilation) is in its own table.",
         "",
         f"Run time {results['seconds']:.0f} s; load average (1, 5, 15 min) before "
         f"{tuple(round(x, 2) for x in results['load']['before'])}, after "
@@ -957,12 +965,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--ops", help="comma-separated operation names (default: all)")
     parser.add_argument("--merge", type=Path, nargs="+", help="render one report from these results.json")
     parser.add_argument("--sizes", help="comma-separated batch sizes N (default: the full or the quick grid)")
+    parser.add_argument("--repeats", type=int, help="interleaved blocks per cell (default: 7; --quick: 3)")
     args = parser.parse_args(argv)
     if args.merge:
         write(merge(args.merge), args.out)
         return
     sizes = tuple(int(n) for n in args.sizes.split(",")) if args.sizes else None
-    run(args.quick, args.out, args.ops.split(",") if args.ops else None, sizes)
+    run(args.quick, args.out, args.ops.split(",") if args.ops else None, sizes, args.repeats)
 
 
 if __name__ == "__main__":

@@ -3,6 +3,7 @@ asserted: the numbers depend on the machine."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -33,8 +34,11 @@ def run_benchmark(module: str, out: Path, *args: str) -> None:
 
 def test_quick_benchmark_writes_results(tmp_path: Path) -> None:
     pytest.importorskip("matplotlib")
-    run_benchmark("run", tmp_path, "--ops", ",".join(QUICK_OPS))
+    # four blocks, not --quick's three: the report names the count it was run with
+    run_benchmark("run", tmp_path, "--ops", ",".join(QUICK_OPS), "--repeats", "4")
     text = (tmp_path / "RESULTS.md").read_text()
+    assert "--repeats 4`" in text and "Medians over 4 interleaved blocks" in text
+    assert json.loads((tmp_path / "results.json").read_text())["repeats"] == 4
     for heading in (*(f"## {name}\n" for name in QUICK_OPS), "### forward + backward"):
         assert heading in text
     for row in ("| diffquat torch eager |", "| diffquat jax.jit |", "| roofline (copy of the same bytes) |"):
@@ -62,7 +66,6 @@ def test_quick_averaging_benchmark_writes_results(tmp_path: Path) -> None:
         assert row in text
     for peer in ("| geoopt RiemannianAdam |", "| pypose LM (dense) |"):
         assert peer in text  # a row either way: timed, or "skipped: ... is not installed"
-    import json
 
     results = json.loads((tmp_path / "averaging.json").read_text())
     lm = results["end_to_end"]["methods"]["Levenberg-Marquardt (diffquat Jacobians)"]
@@ -72,7 +75,6 @@ def test_quick_averaging_benchmark_writes_results(tmp_path: Path) -> None:
 def test_quick_means_benchmark_writes_results(tmp_path: Path) -> None:
     """The means' benchmark (``benchmarks.means --quick``: one size, 8 sets of 16 rotations) runs and
     writes a table per function and mode, with scipy's ``Rotation.mean`` beside the chordal means."""
-    import json
     import math
 
     run_benchmark("means", tmp_path)
@@ -94,7 +96,6 @@ def test_merge_lists_only_the_runs_whose_tables_it_shows(
 ) -> None:
     """Merging reports: a later run of an operation replaces an earlier one, and the run list, the run
     time and the load come only from the runs whose tables the report still shows."""
-    import json
 
     monkeypatch.syspath_prepend(str(ROOT))
     from benchmarks.run import merge
@@ -123,7 +124,6 @@ def test_gpu_benchmark_runs_and_renders_into_results(tmp_path: Path) -> None:
     have no GPU): it times every method beside the copy, counts the operations of one diffquat call,
     and its section joins RESULTS.md, which also names it in place of "still to be measured"."""
     pytest.importorskip("matplotlib")
-    import json
 
     cpu = json.loads((ROOT / "benchmarks" / "results.json").read_text())
     (tmp_path / "results.json").write_text(json.dumps(cpu))
@@ -149,7 +149,6 @@ def test_quick_fisher_benchmark_writes_results(tmp_path: Path) -> None:
     """``benchmarks.fisher --quick`` writes its accuracy and timing tables; the accuracy rows are
     deterministic: the 512-node trapezoid baseline is off by ~0.05 nats at S = 100 I (the issue's
     figure), diffquat within 1e-9."""
-    import json
 
     run_benchmark("fisher", tmp_path)
     text = (tmp_path / "FISHER.md").read_text()
