@@ -450,27 +450,36 @@ def test_compiled_public_function_traces_to_the_core_formula(scalar_first: bool,
         assert (len(ours) > len(theirs) + 2) == (core.__name__ in _core.CANONICAL)
 
 
-def test_the_nonfinite_row_rule_holds_under_inductor() -> None:
+def test_the_nonfinite_row_rule_holds_under_inductor_and_xla() -> None:
     """The non-finite row rule finds the bad rows as sums of ``0 * x`` (NaN exactly where a NaN or an
-    infinity is). Compiled by inductor, as a user's compiled model runs it, the rule still makes
-    those rows NaN and leaves the others as they are, a row of huge finite entries (whose plain sum
-    would overflow) included: no folding of ``0 * x`` to 0."""
-    x = torch.randn(7, 3, 3, dtype=torch.float64)
+    infinity is). Compiled, as a user's compiled model runs it (inductor, and XLA under ``jax.jit``),
+    the rule still makes those rows NaN and leaves the others as they are, a row of huge finite
+    entries (whose plain sum would overflow) included: no compiler folds ``0 * x`` to 0."""
+    import jax
+
+    from diffquat.jax._namespace import XP
+
+    x = np.random.default_rng(0).normal(size=(7, 3, 3))
     x[0] = 1e308
     x[1, 0, 2], x[3, 2, 2], x[4, 1, 1] = math.inf, -math.inf, math.nan
-    v = torch.randn(7, 3, dtype=torch.float64)
+    v = np.random.default_rng(1).normal(size=(7, 3))
     v[5, 0] = math.nan
     v[6, 2] = -math.inf
-    out = torch.randn(7, 3, 3, dtype=torch.float64)
+    out = np.random.default_rng(2).normal(size=(7, 3, 3))
 
-    def rule(out: torch.Tensor, x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-        return _backend.nonfinite_rows(torch, out, [(x, (3, 3)), (v, (3,))])  # type: ignore[no-any-return]
+    def rule(xp: Any) -> Callable[..., Any]:
+        return lambda out, x, v: _backend.nonfinite_rows(xp, out, [(x, (3, 3)), (v, (3,))])
 
     torch._dynamo.reset()
-    for fn in (rule, torch.compile(rule, fullgraph=True, dynamic=False)):
-        got = fn(out, x, v)
-        assert bool(torch.isnan(got[[1, 3, 4, 5, 6]]).all())
-        assert torch.equal(got[[0, 2]], out[[0, 2]])
+    paths = {
+        "torch": (rule(torch), torch.tensor),
+        "inductor": (torch.compile(rule(torch), fullgraph=True, dynamic=False), torch.tensor),
+        "jax.jit": (jax.jit(rule(XP)), jax.numpy.asarray),
+    }
+    for name, (fn, array) in paths.items():
+        got = np.asarray(fn(array(out), array(x), array(v)))
+        assert np.isnan(got[[1, 3, 4, 5, 6]]).all(), name
+        np.testing.assert_array_equal(got[[0, 2]], out[[0, 2]], err_msg=name)
 
 
 @pytest.mark.parametrize("scalar_first", [True, False], ids=["wxyz", "xyzw"])
