@@ -686,6 +686,10 @@ def _fmt_overhead(first: float, median: float) -> str:
     return "≈ 0 (below noise)" if first <= median else _fmt_time(first - median)
 
 
+# Interleaved blocks per cell, by --quick.
+DEFAULT_REPEATS = {True: 3, False: 7}
+
+
 def run(
     quick: bool,
     out_dir: Path,
@@ -700,8 +704,7 @@ def run(
     # Medians over 7 blocks of >= 30 ms: a 2-core shared machine is noisy (spreads of 100% and more
     # between 3 blocks of 10 ms). More blocks (--repeats) for ratios near 1: two runs of 7 moved a
     # ratio of microsecond calls (N = 1) by up to 0.3.
-    default_repeats, block_s = (3, 0.002) if quick else (7, 0.03)
-    repeats = repeats or default_repeats
+    repeats, block_s = repeats or DEFAULT_REPEATS[quick], 0.002 if quick else 0.03
     ops = [op for op in build_ops(quick) if only is None or op.name in only]
     load_before = os.getloadavg()
     started = time.time()
@@ -827,7 +830,11 @@ def render(results: dict[str, Any], gpu_results: dict[str, Any] | None = None) -
             if tuple(results["sizes"]) not in (FULL_SIZES, QUICK_SIZES)
             else ""
         )
-        + (f" --repeats {results['repeats']}" if results.get("repeats", 7) not in (3, 7) else "")
+        + (
+            f" --repeats {results['repeats']}"
+            if results.get("repeats", DEFAULT_REPEATS[results["quick"]]) != DEFAULT_REPEATS[results["quick"]]
+            else ""
+        )
         + "`; "
         "do not edit by hand. float32, CPU. Each cell: median time per call, and in parentheses the "
         "fraction of the memory-bandwidth bound (the roofline row's time over this one's) where N >= 4096. "
