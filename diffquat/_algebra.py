@@ -241,7 +241,11 @@ def quaternion_to_axis_angle(xp: Any, q: Any, *, scalar_first: bool = True) -> A
     s = xp.sqrt(xp.where(small, 1.0, s2))
     closed = 2.0 * xp.atan2(s, w) / s
     k = xp.where(small, series, closed)
-    return xp.stack([k * x, k * y, k * z], axis=-1)
+    # A broadcast product, not a stack of three: XLA fuses a cheap consumer into its producers by
+    # recomputing them, and into each part of a stack it recomputed the atan2 (three per rotation:
+    # so3_log at N = 4096 2x slower than jaxlie's); a broadcast reuses the factor, which XLA then
+    # keeps as one array. The same products, the same values.
+    return k[..., None] * xp.stack([x, y, z], axis=-1)
 
 
 # As so3_exp, the same map: every entry reads a component of the quaternion, NaN in a non-finite row.

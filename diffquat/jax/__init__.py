@@ -384,10 +384,12 @@ def axis_angle_to_matrix(axis_angle: ArrayLike) -> Array:
 # (see _core.Conversion): against the plain core step, which XLA fuses into what follows, they
 # measured forward 1.1x faster at N = 262144 and forward + backward 1.2-1.8x from N = 64 on.
 # matrix_to_euler_angles keeps the core's step, where the kernels measured mixed (0.95-1.24x). Without
-# the kernels the composite keeps the plain step: the formula's custom derivative measured 1.5-2x
-# slower inside these composites.
+# the kernels the composite takes the formula with its derivative written out (_M2Q), as
+# matrix_to_quaternion does: against the plain core step, so3_log at N = 4096 measured 1.4x faster
+# forward and 3x forward + backward (XLA's own derivative of the plain step carried all four
+# candidates, and fused thirteen divisions into each of the nine entries of the cotangent).
 def _m2q_step(xp: Any, matrix: Array) -> Array:
-    return _kernels_on_the_cpu(matrix, True, lambda m: _core.matrix_to_quaternion(xp, m))
+    return _kernels_on_the_cpu(matrix, True, lambda m: _M2Q[True](xp, m))
 
 
 @documented(_algebra.matrix_to_axis_angle)
@@ -516,7 +518,7 @@ def so3_plus(matrix: ArrayLike, delta: ArrayLike, *, side: Side = "right") -> Ar
 
 @documented(_lie.so3_minus)
 def so3_minus(matrix1: ArrayLike, matrix2: ArrayLike, *, side: Side = "right") -> Array:
-    return _B(_lie.so3_minus, matrix1, matrix2, side=side)
+    return _B(_lie.so3_minus, matrix1, matrix2, side=side, to_quaternion=_M2Q[True])
 
 
 @documented(_lie.quaternion_plus)
