@@ -186,7 +186,12 @@ def axis_angle_to_quaternion(xp: Any, axis_angle: Any, *, scalar_first: bool = T
     """
     vx, vy, vz = axis_angle[..., 0], axis_angle[..., 1], axis_angle[..., 2]
     w, k = exp_factors(xp, vx * vx + vy * vy + vz * vz)  # angle^2: smooth at 0, unlike the angle
-    return join_quaternion(xp, w, k * vx, k * vy, k * vz, scalar_first)
+    # k v as a broadcast product, not three products stacked with w: XLA recomputed the square root,
+    # the sine and the division behind k in each of the four parts of the stack (so3_plus forward at
+    # N = 4096 1.3x slower than jaxlie's); a broadcast reuses k, which XLA keeps as one array. The same
+    # products, the same values.
+    v = k[..., None] * axis_angle
+    return xp.concat([w[..., None], v] if scalar_first else [v, w[..., None]], axis=-1)
 
 
 def exp_factors(xp: Any, t2: Any) -> tuple[Any, Any]:
