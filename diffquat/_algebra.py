@@ -267,6 +267,8 @@ def axis_angle_to_matrix(
     return to_matrix(xp, computed_once(xp, axis_angle_to_quaternion(xp, axis_angle)))
 
 
+# NaN rows by arithmetic, as matrix_to_quaternion's: every component of a NaN quaternion is NaN here.
+@nonfinite_by_arithmetic
 @op(matrix=(3, 3))
 def matrix_to_axis_angle(xp: Any, matrix: Any, *, to_quaternion: Conversion = matrix_to_quaternion) -> Any:
     """Rotation vector ``axis * angle`` of a rotation matrix, angle in [0, pi]: ``(..., 3, 3)`` to

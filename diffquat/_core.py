@@ -322,6 +322,10 @@ def quaternion_to_matrix_tangent(xp: Any, q: Any, tangent: Any, *, scalar_first:
     )  # fmt: skip
 
 
+# NaN or inf anywhere in the matrix reaches every component: each of the four candidates reads all nine
+# entries, and the largest component it is divided by (a NaN-propagating maximum) or its norm is then
+# NaN. So the backends add no selection after it (tests/test_values.py checks the rule on every backend).
+@nonfinite_by_arithmetic
 @canonical
 @op(matrix=(3, 3))
 def matrix_to_quaternion(xp: Any, matrix: Any, *, scalar_first: bool = True) -> Any:

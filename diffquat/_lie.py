@@ -129,6 +129,8 @@ def so3_exp(xp: Any, omega: Any, *, to_matrix: Conversion = unit_quaternion_to_m
     return axis_angle_to_matrix(xp, omega, to_matrix=to_matrix)
 
 
+# As matrix_to_axis_angle: NaN rows by arithmetic.
+@nonfinite_by_arithmetic
 @op(matrix=(3, 3))
 def so3_log(xp: Any, matrix: Any, *, to_quaternion: Conversion = matrix_to_quaternion) -> Any:
     """The logarithm of SO(3): the rotation vector ``axis * angle`` of a rotation matrix, angle in
@@ -373,6 +375,9 @@ def so3_plus(
     return xp.matmul(matrix, step) if right else xp.matmul(step, matrix)
 
 
+# A non-finite entry of either matrix makes a row or column of the relative rotation non-finite, which
+# every candidate of matrix_to_quaternion reads: NaN rows by arithmetic.
+@nonfinite_by_arithmetic
 @op(matrix1=(3, 3), matrix2=(3, 3))
 def so3_minus(
     xp: Any,
