@@ -339,6 +339,40 @@ def test_nonfinite_rows_give_nan_rows_and_leave_the_others(op: Op, backend: Back
     np.testing.assert_allclose(out[good] / scale, expected[good] / scale, rtol=0, atol=4 * eps)
 
 
+def _nan_rows_by_arithmetic(op: Op) -> bool:
+    import diffquat.numpy  # noqa: F401  (imports every core module, which mark their functions)
+    from diffquat import _core
+
+    return op.name in _core.NONFINITE_BY_ARITHMETIC and not op.variant_of
+
+
+@only(op=_nan_rows_by_arithmetic, backend=lambda name: name != "numpy")
+def test_nonfinite_rows_by_arithmetic_hold_compiled(op: Op, backend: Backend) -> None:
+    """The functions that add no selection for non-finite rows (``_core.NONFINITE_BY_ARITHMETIC``:
+    every output entry of a bad row is NaN by the arithmetic itself, a NaN-propagating maximum among
+    it) keep that rule compiled, where the compiler may rewrite the arithmetic: under
+    ``torch.compile(fullgraph=True)`` (inductor, the formula path) and ``jax.jit`` (XLA). The other
+    rows are those of the eager call."""
+    import jax
+    import torch
+
+    clean, poisoned, bad = poisoned_batch(op)
+    xs = [backend.array(x, "float32") for x in poisoned]
+    module = backend.module
+    if backend.name == "torch":
+        torch._dynamo.reset()
+        compiled = torch.compile(lambda *a: op(module, *a), fullgraph=True, dynamic=False)
+    else:
+        compiled = jax.jit(lambda *a: op(module, *a))
+    out = backend.to_numpy(compiled(*xs))
+    assert np.all(np.isnan(out[bad])), op.id
+    expected = backend.to_numpy(op(module, *(backend.array(x, "float32") for x in clean)))
+    good = [k for k in range(len(out)) if k not in bad]
+    eps = float(np.finfo(np.float32).eps)
+    scale = np.maximum(np.abs(expected[good]), 1.0)
+    np.testing.assert_allclose(out[good] / scale, expected[good] / scale, rtol=0, atol=8 * eps)
+
+
 @only(op=lambda op: op.name in ("matrix_to_quaternion", "matrix_to_axis_angle", "matrix_to_euler_angles"))
 def test_huge_finite_matrices_give_finite_results(op: Op, backend: Backend, dtype: str) -> None:
     """Any finite matrix gives a finite unit quaternion, up to the largest finite number of the dtype
