@@ -49,7 +49,10 @@ typedef struct {
     int64_t sa[3];     /* strides of a: row, then (component) or (matrix row, matrix column) */
     int64_t sb[3];
     int64_t sc[3];
-    int first;         /* storage order of every quaternion read or written: 1 = (w, x, y, z) */
+    int first;         /* storage order of every quaternion read or written: 1 = (w, x, y, z); */
+                       /* for the Jacobians, which one (0 J_l, 1 J_r, 2 J_l^-1, 3 J_r^-1) */
+    const double *series; /* the Jacobians' series: the threshold in u, then the coefficients */
+    int64_t terms[3];  /* how many coefficients of each of the three series follow */
 } Args;
 
 typedef void (*Kernel)(const Args *, int64_t, int64_t);
@@ -406,13 +409,172 @@ DEFINE_MOVES(double, f64)
 DEFINE_KERNELS(float, f32, FLT_MIN, sqrtf)
 DEFINE_KERNELS(double, f64, DBL_MIN, sqrt)
 
+/* ---------------------------------------------------------------------------------------------
+ * The Jacobians of SO(3) (diffquat/_lie.py): J = p I + q hat(w) + r w w^T, forward (w -> J) and
+ * backward (w, dL/dJ -> dL/dw), one kernel each for the four of them (kind: 0 J_l, 1 J_r, 2 J_l^-1,
+ * 3 J_r^-1). The forward is _lie._jacobian_coefficients / _inverse_coefficients and _lie._assemble,
+ * operation by operation: Taylor series in u = |w|^2 below the core's threshold, closed forms in
+ * half angles above (sin and cos from libm), both evaluated and one selected. The series' threshold
+ * and coefficients, truncated for the dtype as the core truncates them, come from the core's table
+ * (Args.series, filled by diffquat/torch/_cpu.py): one table, not a copy of it.
+ *
+ * The backward is the derivative of that forward, written out: with p', q', r' the derivatives in u,
+ *   dL/dw = 2 (p' tr G + q' <G, hat(w)> + r' w^T G w) w + q vee(G - G^T) + r (G + G^T) w,
+ * where vee(G - G^T) = (G21 - G12, G02 - G20, G10 - G01) is the derivative of <G, hat(w)>. Below the
+ * threshold p', q', r' are the derivatives of the truncated series (what autodiff of the core's
+ * Horner evaluation computes); above, identities of the closed forms that need no further sines:
+ *   J:    p' = (r - q) / 2, q' = (p - 2 q) / (2 u), r' = (q - 3 r) / (2 u)
+ *   J^-1: p' = (p r - 1/4) / 2, r' = -(p' + r) / u            (q is the constant -+1/2)
+ * They cancel where the closed forms do (at small t, where the series is used instead): from the
+ * threshold t = 1 on, r' loses at most ~6 bits of itself, a part in 1e4 of the gradient's scale. */
+#define MAX_TERMS 16
+
+#define DEFINE_JACOBIANS(T, SUFFIX, SQRT, SIN, COS)                                                  \
+    typedef struct {                                                                                \
+        T below;                       /* the threshold in u */                                     \
+        T c[3][MAX_TERMS], d[3][MAX_TERMS]; /* (1 - cos t)/t^2, (t - sin t)/t^3, J^-1's r; d/du */  \
+        int n[3];                                                                                   \
+    } Series_##SUFFIX;                                                                              \
+                                                                                                    \
+    static void series_##SUFFIX(Series_##SUFFIX *s, const Args *args) {                             \
+        const double *table = args->series;                                                         \
+        s->below = (T)table[0];                                                                     \
+        int64_t at = 1;                                                                             \
+        for (int k = 0; k < 3; ++k) {                                                               \
+            s->n[k] = (int)args->terms[k];                                                          \
+            for (int i = 0; i < s->n[k]; ++i) s->c[k][i] = (T)table[at + i];                        \
+            for (int i = 0; i + 1 < s->n[k]; ++i) s->d[k][i] = (T)((double)(i + 1) * table[at + i + 1]); \
+            at += s->n[k];                                                                          \
+        }                                                                                           \
+    }                                                                                               \
+                                                                                                    \
+    /* _lie._series: Horner's rule, as the core writes it (n >= 2 terms) */                         \
+    static inline T horner_##SUFFIX(const T *c, int n, T u) {                                       \
+        T out = c[n - 1] * u + c[n - 2];                                                            \
+        for (int i = n - 3; i >= 0; --i) out = out * u + c[i];                                      \
+        return out;                                                                                 \
+    }                                                                                               \
+                                                                                                    \
+    /* (p, q, r) and their derivatives in u (d[0..3)) at u = |w|^2; q is J_l's (kinds 0 and 1) or */ \
+    /* 0 (the inverses, whose q is a constant the caller adds) */                                   \
+    static inline void coefficients_##SUFFIX(const Series_##SUFFIX *s, int inverse, T u, T c[3],    \
+                                             T d[3], int derivatives) {                             \
+        const int small = u < s->below;                                                             \
+        const T us = small ? u : (T)0, uc = small ? s->below : u, t = SQRT(uc);                     \
+        if (!inverse) {                                                                             \
+            const T rs = horner_##SUFFIX(s->c[1], s->n[1], us);                                     \
+            const T sin_t = SIN(t), sin_half = SIN((T)0.5 * t);                                     \
+            const T pc = sin_t / t, qc = (T)2 * (sin_half * sin_half) / uc;                         \
+            const T rc = (t - sin_t) / (t * uc);                                                    \
+            c[0] = small ? (T)1 - us * rs : pc;                                                     \
+            c[1] = small ? horner_##SUFFIX(s->c[0], s->n[0], us) : qc;                              \
+            c[2] = small ? rs : rc;                                                                 \
+            if (derivatives) {                                                                      \
+                const T drs = horner_##SUFFIX(s->d[1], s->n[1] - 1, us);                            \
+                d[0] = small ? -(rs + us * drs) : (rc - qc) * (T)0.5;                               \
+                d[1] = small ? horner_##SUFFIX(s->d[0], s->n[0] - 1, us) : (pc - (T)2 * qc) / ((T)2 * uc); \
+                d[2] = small ? drs : (qc - (T)3 * rc) / ((T)2 * uc);                                \
+            }                                                                                       \
+        } else {                                                                                    \
+            const T rs = horner_##SUFFIX(s->c[2], s->n[2], us);                                     \
+            const T half = (T)0.5 * t;                                                              \
+            const T pc = half * COS(half) / SIN(half), rc = ((T)1 - pc) / uc;                       \
+            c[0] = small ? (T)1 - us * rs : pc;                                                     \
+            c[1] = (T)0;                                                                            \
+            c[2] = small ? rs : rc;                                                                 \
+            if (derivatives) {                                                                      \
+                const T drs = horner_##SUFFIX(s->d[2], s->n[2] - 1, us);                            \
+                const T dpc = (pc * rc - (T)0.25) * (T)0.5;                                         \
+                d[0] = small ? -(rs + us * drs) : dpc;                                              \
+                d[1] = (T)0;                                                                        \
+                d[2] = small ? drs : -(dpc + rc) / uc;                                              \
+            }                                                                                       \
+        }                                                                                           \
+    }                                                                                               \
+                                                                                                    \
+    /* the factor of hat(w) and its derivative in u, by kind: q, -q, -1/2, 1/2 */                   \
+    static inline T skew_##SUFFIX(int kind, T q) {                                                  \
+        return kind == 0 ? q : kind == 1 ? -q : kind == 2 ? (T)-0.5 : (T)0.5;                       \
+    }                                                                                               \
+                                                                                                    \
+    static inline void gather3_##SUFFIX(T v[3][BLOCK], const T *src, const int64_t *s, int64_t base, \
+                                        int cnt) {                                                  \
+        const T *rows = src + base * s[0];                                                          \
+        for (int j = 0; j < cnt; ++j) {                                                             \
+            for (int e = 0; e < 3; ++e) v[e][j] = rows[j * s[0] + e * s[1]];                        \
+        }                                                                                           \
+    }                                                                                               \
+                                                                                                    \
+    CLONES static void jac_forward_##SUFFIX(const Args *args, int64_t begin, int64_t end) {        \
+        T v[3][BLOCK], m[9][BLOCK];                                                                 \
+        Series_##SUFFIX s;                                                                          \
+        series_##SUFFIX(&s, args);                                                                  \
+        const int kind = args->first, inverse = kind >= 2;                                          \
+        for (int64_t base = begin; base < end; base += BLOCK) {                                     \
+            const int cnt = (int)(end - base < BLOCK ? end - base : BLOCK);                         \
+            gather3_##SUFFIX(v, (const T *)args->a, args->sa, base, cnt);                           \
+            for (int j = 0; j < cnt; ++j) {                                                         \
+                const T x = v[0][j], y = v[1][j], z = v[2][j];                                      \
+                T c[3], d[3];                                                                       \
+                coefficients_##SUFFIX(&s, inverse, x * x + y * y + z * z, c, d, 0);                 \
+                const T p = c[0], q = skew_##SUFFIX(kind, c[1]), r = c[2];                          \
+                /* _lie._assemble */                                                                \
+                const T rx = r * x, ry = r * y, rxy = rx * y, rxz = rx * z, ryz = ry * z;           \
+                const T qx = q * x, qy = q * y, qz = q * z;                                         \
+                m[0][j] = p + rx * x, m[1][j] = rxy - qz, m[2][j] = rxz + qy;                       \
+                m[3][j] = rxy + qz, m[4][j] = p + ry * y, m[5][j] = ryz - qx;                       \
+                m[6][j] = rxz - qy, m[7][j] = ryz + qx, m[8][j] = p + (r * z) * z;                  \
+            }                                                                                       \
+            scatter9_##SUFFIX((T *)args->out + 9 * base, m, cnt);                                   \
+        }                                                                                           \
+    }                                                                                               \
+                                                                                                    \
+    CLONES static void jac_backward_##SUFFIX(const Args *args, int64_t begin, int64_t end) {       \
+        T v[3][BLOCK], g[9][BLOCK];                                                                 \
+        Series_##SUFFIX s;                                                                          \
+        series_##SUFFIX(&s, args);                                                                  \
+        const int kind = args->first, inverse = kind >= 2;                                          \
+        const T flip = kind == 1 ? (T)-1 : (T)1; /* J_r = J_l(-w): its q' is -q' */                 \
+        T *out = (T *)args->out;                                                                    \
+        for (int64_t base = begin; base < end; base += BLOCK) {                                     \
+            const int cnt = (int)(end - base < BLOCK ? end - base : BLOCK);                         \
+            gather3_##SUFFIX(v, (const T *)args->a, args->sa, base, cnt);                           \
+            gather9_##SUFFIX(g, (const T *)args->b, args->sb, base, cnt);                           \
+            for (int j = 0; j < cnt; ++j) {                                                         \
+                const T x = v[0][j], y = v[1][j], z = v[2][j];                                      \
+                T c[3], d[3];                                                                       \
+                coefficients_##SUFFIX(&s, inverse, x * x + y * y + z * z, c, d, 1);                 \
+                const T q = skew_##SUFFIX(kind, c[1]), r = c[2];                                    \
+                const T g0 = g[0][j], g1 = g[1][j], g2 = g[2][j], g3 = g[3][j], g4 = g[4][j];       \
+                const T g5 = g[5][j], g6 = g[6][j], g7 = g[7][j], g8 = g[8][j];                     \
+                const T vx = g7 - g5, vy = g2 - g6, vz = g3 - g1;                                   \
+                const T gx = g0 * x + g1 * y + g2 * z, gy = g3 * x + g4 * y + g5 * z;               \
+                const T gz = g6 * x + g7 * y + g8 * z;                                              \
+                const T hx = g0 * x + g3 * y + g6 * z, hy = g1 * x + g4 * y + g7 * z;               \
+                const T hz = g2 * x + g5 * y + g8 * z;                                              \
+                T k = d[0] * (g0 + g4 + g8) + d[2] * (x * gx + y * gy + z * gz);                    \
+                if (!inverse) k = k + flip * d[1] * (x * vx + y * vy + z * vz);                     \
+                k = (T)2 * k;                                                                       \
+                T *o = out + 3 * (base + j);                                                        \
+                o[0] = k * x + q * vx + r * (gx + hx);                                              \
+                o[1] = k * y + q * vy + r * (gy + hy);                                              \
+                o[2] = k * z + q * vz + r * (gz + hz);                                              \
+            }                                                                                       \
+        }                                                                                           \
+    }
+
+DEFINE_JACOBIANS(float, f32, sqrtf, sinf, cosf)
+DEFINE_JACOBIANS(double, f64, sqrt, sin, cos)
+
 /* Kernels by name and dtype (0: float32, 1: float64). */
-enum { Q2M_FORWARD, Q2M_BACKWARD, M2Q_FORWARD, M2Q_BACKWARD };
-static const Kernel KERNELS[4][2] = {
+enum { Q2M_FORWARD, Q2M_BACKWARD, M2Q_FORWARD, M2Q_BACKWARD, JAC_FORWARD, JAC_BACKWARD };
+static const Kernel KERNELS[6][2] = {
     {q2m_forward_f32, q2m_forward_f64},
     {q2m_backward_f32, q2m_backward_f64},
     {m2q_forward_f32, m2q_forward_f64},
     {m2q_backward_f32, m2q_backward_f64},
+    {jac_forward_f32, jac_forward_f64},
+    {jac_backward_f32, jac_backward_f64},
 };
 
 typedef struct {
@@ -518,6 +680,27 @@ static PyObject *m2q_backward(PyObject *self, PyObject *const *argv, Py_ssize_t 
     Args args = {.a = PTR(v[4]), .sa = {v[5], v[6], v[7]}, .b = PTR(v[8]), .sb = {v[9], v[10], 0},
                  .c = PTR(v[11]), .sc = {v[12], v[13], 0}, .out = PTR(v[14]), .first = (int)v[3]};
     return launch(KERNELS[M2Q_BACKWARD][v[0] != 0], &args, v[2], v[1]);
+}
+
+/* jac_forward(dtype, threads, n, kind, w, w_row, w_component, series, terms0, terms1, terms2, out) */
+static PyObject *jac_forward(PyObject *self, PyObject *const *argv, Py_ssize_t argc) {
+    (void)self; /* a module function: no instance */
+    int64_t v[12];
+    if (read_ints(argv, argc, 12, "jac_forward", v) < 0) return NULL;
+    Args args = {.a = PTR(v[4]), .sa = {v[5], v[6], 0}, .series = PTR(v[7]), .terms = {v[8], v[9], v[10]},
+                 .out = PTR(v[11]), .first = (int)v[3]};
+    return launch(KERNELS[JAC_FORWARD][v[0] != 0], &args, v[2], v[1]);
+}
+
+/* jac_backward(dtype, threads, n, kind, w, w_row, w_component, grad, grad_row, grad_i, grad_j,
+ *              series, terms0, terms1, terms2, out) */
+static PyObject *jac_backward(PyObject *self, PyObject *const *argv, Py_ssize_t argc) {
+    (void)self; /* a module function: no instance */
+    int64_t v[16];
+    if (read_ints(argv, argc, 16, "jac_backward", v) < 0) return NULL;
+    Args args = {.a = PTR(v[4]), .sa = {v[5], v[6], 0}, .b = PTR(v[7]), .sb = {v[8], v[9], v[10]},
+                 .series = PTR(v[11]), .terms = {v[12], v[13], v[14]}, .out = PTR(v[15]), .first = (int)v[3]};
+    return launch(KERNELS[JAC_BACKWARD][v[0] != 0], &args, v[2], v[1]);
 }
 
 /* ---------------------------------------------------------------------------------------------
@@ -675,6 +858,10 @@ static PyMethodDef methods[] = {
      "matrix_to_quaternion forward over raw buffers."},
     {"m2q_backward", (PyCFunction)(void (*)(void))m2q_backward, METH_FASTCALL,
      "matrix_to_quaternion backward over raw buffers."},
+    {"jac_forward", (PyCFunction)(void (*)(void))jac_forward, METH_FASTCALL,
+     "The SO(3) Jacobians and their inverses, forward, over raw buffers."},
+    {"jac_backward", (PyCFunction)(void (*)(void))jac_backward, METH_FASTCALL,
+     "The SO(3) Jacobians and their inverses, backward, over raw buffers."},
     {"xla_handlers", xla_handlers, METH_NOARGS,
      "The matrix_to_quaternion kernels as XLA FFI handlers: {name: PyCapsule} (see diffquat/jax/_xla.py)."},
     {NULL, NULL, 0, NULL},

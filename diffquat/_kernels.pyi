@@ -42,6 +42,40 @@ def m2q_backward(
     out: int,
     /,
 ) -> None: ...
+def jac_forward(
+    dtype: int,
+    threads: int,
+    n: int,
+    kind: int,
+    w: int,
+    w_row: int,
+    w_component: int,
+    series: int,
+    terms0: int,
+    terms1: int,
+    terms2: int,
+    out: int,
+    /,
+) -> None: ...
+def jac_backward(
+    dtype: int,
+    threads: int,
+    n: int,
+    kind: int,
+    w: int,
+    w_row: int,
+    w_component: int,
+    grad: int,
+    grad_row: int,
+    grad_i: int,
+    grad_j: int,
+    series: int,
+    terms0: int,
+    terms1: int,
+    terms2: int,
+    out: int,
+    /,
+) -> None: ...
 def xla_handlers() -> dict[str, Any]: ...
 
 PORTABLE: int  # 1 for the scalar build the tests make (DIFFQUAT_PORTABLE), 0 for the installed one

@@ -184,6 +184,16 @@ def _truncated(coefficients: tuple[float, ...], eps: float) -> tuple[float, ...]
     raise AssertionError("the series tables are too short for this dtype")  # pragma: no cover
 
 
+def series_table(eps: float) -> tuple[list[float], tuple[int, int, int]]:
+    """The series of the Jacobians' coefficients as the C kernels read them (``_kernels.c``): the
+    threshold ``SERIES_BELOW``, then the coefficients of ``(1 - cos t) / t^2``, ``(t - sin t) / t^3``
+    and the inverse's ``r``, each truncated for a dtype of machine epsilon ``eps`` as :func:`_series`
+    truncates it; and how many of each."""
+    tables = [_truncated(c, eps) for c in (_A_SERIES, _B_SERIES, _C_SERIES)]
+    a, b, c = (len(table) for table in tables)
+    return [SERIES_BELOW, *(c for table in tables for c in table)], (a, b, c)
+
+
 def _series(xp: Any, u: Any, coefficients: tuple[float, ...]) -> Any:
     """Horner's evaluation of the series at ``u``, truncated for ``u``'s dtype (:func:`_truncated`)."""
     terms = _truncated(coefficients, float(xp.finfo(u.dtype).eps))

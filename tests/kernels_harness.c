@@ -2,7 +2,9 @@
  * DIFFQUAT_KERNELS_ONLY: no Python, no XLA), for tests/test_compilers.py: it runs every kernel in
  * float32 and float64, both storage orders, on deterministic inputs with edge rows, and prints a hash
  * of each output's bytes. Built natively and cross-compiled for aarch64 (run under qemu), the two
- * must print the same lines: the kernels give the same bits where there are no x86 intrinsics. */
+ * must print the same lines: the kernels give the same bits where there are no x86 intrinsics. The
+ * Jacobian kernels call libm's sin and cos, which both glibc builds round alike on these inputs (a
+ * change of libm that rounds one of them differently shows here first). */
 #define DIFFQUAT_KERNELS_ONLY
 #include KERNELS_C /* the path of diffquat/_kernels.c, given by the test */
 #include <stdio.h>
@@ -21,6 +23,22 @@ static uint64_t fnv(const void *data, size_t size) {
     return h;
 }
 
+/* The Jacobians' series, as diffquat/torch/_cpu.py passes them: given by the test from diffquat._lie. */
+static const double series64[] = SERIES_F64, series32[] = SERIES_F32;
+static const int64_t terms64[3] = TERMS_F64, terms32[3] = TERMS_F32;
+
+static double w64[N][3];
+static float w32[N][3];
+/* NaN in one bit pattern: where a kernel's NaN comes from arithmetic (the Jacobians' inf - inf or
+ * sin(inf)), its sign is the processor's default NaN (negative on x86-64, positive on aarch64), which
+ * is no part of the value. */
+static void canonical_nans(void *data, size_t count, int d) {
+    for (size_t i = 0; i < count; ++i) {
+        if (d && isnan(((double *)data)[i])) ((double *)data)[i] = NAN;
+        if (!d && isnan(((float *)data)[i])) ((float *)data)[i] = NAN;
+    }
+}
+
 static double q64[N][4], m64[N][9], g9_64[N][9], g4_64[N][4], o64[N][9], r64[N][4];
 static float q32[N][4], m32[N][9], g9_32[N][9], g4_32[N][4], o32[N][9], r32[N][4];
 
@@ -33,6 +51,15 @@ int main(void) {
     for (int k = 0; k < 4; ++k) q64[0][k] = 0, q64[1][k] = k == 1;
     for (int k = 0; k < 9; ++k) m64[0][k] = k % 4 == 0, m64[1][k] = k == 0 ? 1 : k % 4 == 0 ? -1 : 0;
     q64[2][3] = NAN, m64[2][5] = NAN;
+    /* rotation vectors up to |w| ~ 7 (the series, the closed forms, past pi); zero, NaN, infinity */
+    for (int i = 0; i < N; ++i) {
+        for (int k = 0; k < 3; ++k) w64[i][k] = 4 * uniform();
+    }
+    for (int k = 0; k < 3; ++k) w64[0][k] = 0;
+    w64[1][1] = NAN, w64[2][2] = INFINITY;
+    for (int i = 0; i < N; ++i) {
+        for (int k = 0; k < 3; ++k) w32[i][k] = (float)w64[i][k];
+    }
     for (int i = 0; i < N; ++i) {
         for (int k = 0; k < 4; ++k) q32[i][k] = (float)q64[i][k], g4_32[i][k] = (float)g4_64[i][k];
         for (int k = 0; k < 9; ++k) m32[i][k] = (float)m64[i][k], g9_32[i][k] = (float)g9_64[i][k];
@@ -56,6 +83,23 @@ int main(void) {
                       .sc = {4, 1, 0}, .out = o, .first = first};
             run(KERNELS[M2Q_BACKWARD][d], &e, N, 1);
             printf("m2q_backward %d %d %016llx\n", d, first, (unsigned long long)fnv(o, N * 9 * size));
+        }
+    }
+    for (int d = 0; d < 2; ++d) {
+        for (int kind = 0; kind < 4; ++kind) {
+            const void *w = d ? (void *)w64 : (void *)w32;
+            void *o = d ? (void *)o64 : (void *)o32, *r = d ? (void *)r64 : (void *)r32;
+            size_t size = d ? sizeof(double) : sizeof(float);
+            Args a = {.a = w, .sa = {3, 1, 0}, .out = o, .first = kind, .series = d ? series64 : series32};
+            for (int k = 0; k < 3; ++k) a.terms[k] = d ? terms64[k] : terms32[k];
+            run(KERNELS[JAC_FORWARD][d], &a, N, 1);
+            canonical_nans(o, N * 9, d);
+            printf("jac_forward %d %d %016llx\n", d, kind, (unsigned long long)fnv(o, N * 9 * size));
+            Args b = a;
+            b.b = d ? (void *)g9_64 : (void *)g9_32, b.sb[0] = 9, b.sb[1] = 3, b.sb[2] = 1, b.out = r;
+            run(KERNELS[JAC_BACKWARD][d], &b, N, 1);
+            canonical_nans(r, N * 3, d);
+            printf("jac_backward %d %d %016llx\n", d, kind, (unsigned long long)fnv(r, N * 3 * size));
         }
     }
     return 0;

@@ -1,6 +1,7 @@
-"""The C kernels of ``quaternion_to_matrix`` and ``matrix_to_quaternion`` (diffquat/_kernels.c, bound
-for torch in diffquat/torch/_cpu.py and for jax in diffquat/jax/_xla.py): what the shared matrix,
-tests/test_paths.py and the jax tests do not already check through them.
+"""The C kernels of ``quaternion_to_matrix``, ``matrix_to_quaternion`` and the SO(3) Jacobians
+(diffquat/_kernels.c, bound for torch in diffquat/torch/_cpu.py and, the second, for jax in
+diffquat/jax/_xla.py): what the shared matrix, tests/test_paths.py, tests/test_lie.py and the jax tests
+do not already check through them.
 
 The shared matrix runs every case, dtype, gradient and transform through the public torch functions,
 which take the kernels for eager CPU tensors; tests/test_paths.py checks each evaluation against a
@@ -18,6 +19,7 @@ same order (FMA contraction is off in both).
 
 from __future__ import annotations
 
+import math
 import shutil
 import subprocess
 import sysconfig
@@ -31,7 +33,7 @@ from torch.autograd import forward_ad
 
 import diffquat
 import diffquat.torch as dq
-from diffquat import _core
+from diffquat import _core, _lie
 from diffquat.torch import _cpu, _dispatch
 
 
@@ -44,6 +46,8 @@ def test_the_extension_is_built() -> None:
     assert callable(_kernels.q2m_forward)
     assert _dispatch.quaternion_to_matrix(torch.zeros(4)) is _cpu.quaternion_to_matrix
     assert _dispatch.matrix_to_quaternion(torch.zeros(3, 3)) is _cpu.matrix_to_quaternion
+    for name in _cpu.JACOBIAN_KINDS:
+        assert getattr(_dispatch, name)(torch.zeros(3)) is getattr(_cpu, name)
 
 
 def _quaternions(dtype: torch.dtype) -> torch.Tensor:
@@ -62,6 +66,17 @@ def _matrices(dtype: torch.dtype) -> torch.Tensor:
     noise = torch.randn(rot.shape, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
     arbitrary = torch.randn(9, 3, 3, generator=torch.Generator().manual_seed(6), dtype=torch.float64)
     return torch.cat([rot, rot + 0.05 * noise, arbitrary]).to(dtype)
+
+
+def _rotation_vectors(dtype: torch.dtype) -> torch.Tensor:
+    """Rotation vectors at every scale of the angle: 0, the series (below 1) down to 1e-12, both sides
+    of its threshold, pi, past it up to 30, random ones, and non-finite ones."""
+    angles = torch.tensor([0.0, 1e-12, 1e-6, 1e-3, 0.3, 1 - 1e-7, 1.0, 1 + 1e-7, 2.0, math.pi, 5.0, 30.0])
+    axes = torch.randn(len(angles), 3, generator=torch.Generator().manual_seed(15), dtype=torch.float64)
+    w = axes / axes.norm(dim=-1, keepdim=True) * angles[:, None]
+    random = torch.randn(40, 3, generator=torch.Generator().manual_seed(16), dtype=torch.float64)
+    bad = torch.tensor([[math.nan, 0.0, 0.0], [0.0, math.inf, 0.0], [-math.inf, 1.0, 2.0]])
+    return torch.cat([w, random, bad]).to(dtype)
 
 
 def _grad(fn: object, x: torch.Tensor, cot: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -98,13 +113,62 @@ def test_strided_inputs_are_read_in_place(dtype: torch.dtype) -> None:
         dense = _grad(dq.matrix_to_quaternion, matrix.contiguous(), cot4)
         for a, b in zip(strided, dense, strict=True):
             assert torch.equal(a, b)
+    w_wide, w_batch_last = (
+        torch.randn(40, 8, generator=gen, dtype=dtype),
+        torch.randn(3, 20, generator=gen, dtype=dtype),
+    )
+    for w in (w_wide[::2, 3:6], w_batch_last.mT):
+        assert not w.is_contiguous()
+        for name in _cpu.JACOBIAN_KINDS:
+            strided = _grad(getattr(dq, name), w, cot)
+            dense = _grad(getattr(dq, name), w.contiguous(), cot)
+            for a, b in zip(strided, dense, strict=True):
+                assert torch.equal(a, b)
     # an expanded cotangent (stride 0, what .sum().backward() hands the Function)
-    for fn, x in ((dq.quaternion_to_matrix, q), (dq.matrix_to_quaternion, m)):
+    for fn, x in (
+        (dq.quaternion_to_matrix, q),
+        (dq.matrix_to_quaternion, m),
+        (dq.so3_left_jacobian_inverse, w),
+    ):
         a, b = x.detach().clone().requires_grad_(True), x.detach().clone().requires_grad_(True)
         fn(a).sum().backward()
         (fn(b) * 1.0).backward(torch.ones(fn(b).shape, dtype=dtype))
         assert a.grad is not None and b.grad is not None
         assert torch.equal(a.grad, b.grad)
+
+
+# The Jacobian kernels against the formula in float64, in ulps of each row's scale: measured at most
+# 1.2 (values) and 2.0 (gradients) in both dtypes. The forward evaluates the core's coefficients
+# operation by operation (sin and cos from libm instead of torch's), the backward is their derivative
+# written out, not autograd's sequence of operations: a few ulps, not bits.
+JACOBIAN_ULPS = {"values": 4.0, "gradients": 6.0}
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=str)
+@pytest.mark.parametrize("name", list(_cpu.JACOBIAN_KINDS))
+def test_jacobian_kernels_against_a_float64_reference(name: str, dtype: torch.dtype) -> None:
+    """Each Jacobian through its kernels (the public function's eager path, forward and backward) at
+    every scale of the angle, against the formula in float64 on the same inputs differentiated by
+    autograd: values within a few ulps of each row's largest entry, gradients within a few ulps of
+    that times the cotangent's largest entry; non-finite rows NaN, value and gradient, and only they.
+    (tests/test_lie.py checks the values against mpmath, and the float64 gradients against finite
+    differences, through the same public functions.)"""
+    w = _rotation_vectors(dtype)
+    cot = torch.randn(len(w), 3, 3, generator=torch.Generator().manual_seed(17), dtype=torch.float64)
+    wd = w.double().requires_grad_(True)
+    ref = getattr(_lie, name)(torch, wd)
+    (ref_grad,) = torch.autograd.grad(ref, wd, cot)
+    out, grad = _grad(getattr(dq, name), w, cot.to(dtype))
+    finite = torch.isfinite(w).all(dim=-1)
+    assert out[~finite].isnan().all() and grad[~finite].isnan().all()
+    assert out[finite].isfinite().all() and grad[finite].isfinite().all()
+    eps = torch.finfo(dtype).eps
+    scale = ref.detach()[finite].abs().amax(dim=(-1, -2))
+    value_ulps = (out[finite].double() - ref.detach()[finite]).abs().amax(dim=(-1, -2)) / (eps * scale)
+    grad_scale = cot[finite].abs().amax(dim=(-1, -2)) * scale
+    grad_ulps = (grad[finite].double() - ref_grad[finite]).abs().amax(dim=-1) / (eps * grad_scale)
+    assert value_ulps.max() <= JACOBIAN_ULPS["values"], float(value_ulps.max())
+    assert grad_ulps.max() <= JACOBIAN_ULPS["gradients"], float(grad_ulps.max())
 
 
 @pytest.mark.parametrize("shape", [(), (0,), (2, 0, 3), (3, 1, 2), (7,)], ids=str)
@@ -119,6 +183,11 @@ def test_batch_shapes(shape: tuple[int, ...]) -> None:
     back = dq.matrix_to_quaternion(r)
     assert back.shape == (*shape, 4)
     torch.testing.assert_close(back, _core.matrix_to_quaternion(torch, r), rtol=0, atol=1e-15)
+    w = torch.randn(*shape, 3, generator=gen, dtype=torch.float64)
+    for name in _cpu.JACOBIAN_KINDS:
+        j = getattr(dq, name)(w)
+        assert j.shape == (*shape, 3, 3)
+        torch.testing.assert_close(j, getattr(_lie, name)(torch, w), rtol=0, atol=1e-14)
     if len(shape) == 3:  # (3, 1, 2) batch, permuted: its rows are no longer evenly spaced
         permuted = q.permute(2, 1, 0, 3)
         torch.testing.assert_close(
@@ -149,6 +218,19 @@ def test_rows_split_over_threads(threads: int) -> None:
     qm_core, gm_core = _grad(lambda t: _core.matrix_to_quaternion(torch, t), m, q)
     torch.testing.assert_close(qm, qm_core, rtol=0, atol=4e-15)
     torch.testing.assert_close(gm, gm_core, rtol=1e-12, atol=1e-12)
+    # the Jacobians: the split changes nothing, bit for bit, against one thread
+    w = q[:, 1:]
+    torch.set_num_threads(threads)
+    try:
+        split = _grad(dq.so3_right_jacobian_inverse, w, cot9)
+    finally:
+        torch.set_num_threads(1)
+    try:
+        whole = _grad(dq.so3_right_jacobian_inverse, w, cot9)
+    finally:
+        torch.set_num_threads(before)
+    for a, b in zip(split, whole, strict=True):
+        assert torch.equal(a, b)
 
 
 def test_which_calls_take_the_kernels() -> None:
@@ -163,6 +245,11 @@ def test_which_calls_take_the_kernels() -> None:
         assert dq.quaternion_to_matrix(param).grad_fn is None
     m = dq.quaternion_to_matrix(q).requires_grad_(True)
     assert type(dq.matrix_to_quaternion(m).grad_fn).__name__ == "MatrixToQuaternionKernelBackward"
+    w = torch.randn(5, 3, dtype=torch.float64)
+    for name in _cpu.JACOBIAN_KINDS:
+        assert getattr(dq, name)(w).grad_fn is None
+        assert type(getattr(dq, name)(w.requires_grad_(True)).grad_fn).__name__ == "JacobianKernelBackward"
+        w = w.detach()
 
 
 # Forward-mode AD goes through a torch module that still uses torch.jit.script.
@@ -184,6 +271,15 @@ def test_forward_mode_without_requires_grad() -> None:
             theirs = forward_ad.unpack_dual(core(torch, forward_ad.make_dual(x, t))).tangent
         assert ours is not None and theirs is not None
         torch.testing.assert_close(ours, theirs, rtol=1e-12, atol=1e-12)
+    # The Jacobians' kernels have no jvp: forward mode takes their formula, whose tangent is exact.
+    w, dw = q[:, 1:], dq_[:, 1:]
+    for name in _cpu.JACOBIAN_KINDS:
+        with forward_ad.dual_level():
+            assert getattr(_dispatch, name)(w) is getattr(_lie, name)
+            ours = forward_ad.unpack_dual(getattr(dq, name)(forward_ad.make_dual(w, dw))).tangent
+        theirs = torch.func.jvp(lambda t, n=name: getattr(_lie, n)(torch, t), (w,), (dw,))[1]
+        assert ours is not None
+        torch.testing.assert_close(ours, theirs, rtol=1e-12, atol=1e-12)
 
 
 def test_unusual_cotangent_takes_the_torch_formula() -> None:
@@ -198,6 +294,10 @@ def test_unusual_cotangent_takes_the_torch_formula() -> None:
     cot = torch.randn(4, 3, 3, generator=gen, dtype=torch.float64)
     (plain,) = torch.autograd.grad(dq.quaternion_to_matrix(q), q, cot)
     (wrapped,) = torch.autograd.grad(dq.quaternion_to_matrix(q), q, cot.as_subclass(Wrapped))
+    torch.testing.assert_close(torch.Tensor(wrapped), plain, rtol=1e-12, atol=1e-12)
+    w = q.detach()[:, 1:].requires_grad_(True)
+    (plain,) = torch.autograd.grad(dq.so3_left_jacobian(w), w, cot)
+    (wrapped,) = torch.autograd.grad(dq.so3_left_jacobian(w), w, cot.as_subclass(Wrapped))
     torch.testing.assert_close(torch.Tensor(wrapped), plain, rtol=1e-12, atol=1e-12)
 
 
@@ -246,6 +346,10 @@ def _all_kernels(module: object, dtype: torch.dtype) -> list[torch.Tensor]:
             qm = _cpu.m2q_forward(m, first)
             outs += [_cpu.q2m_forward(q, first), _cpu.q2m_backward(q, cot9, first), qm]
             outs.append(_cpu.m2q_backward(m, qm, cot4, first))
+        w = _rotation_vectors(dtype)
+        cot3 = torch.randn(len(w), 3, 3, generator=gen, dtype=torch.float64).to(dtype)
+        for kind in _cpu.JACOBIAN_KINDS.values():
+            outs += [_cpu.jac_forward(w, kind), _cpu.jac_backward(w, cot3, kind)]
     finally:
         _cpu._kernels = before
     return outs
@@ -277,6 +381,8 @@ def test_portable_build(tmp_path: Path) -> None:
         f"{tests / 'test_paths.py'}::test_each_evaluation_against_a_float64_reference",
         f"{tests / 'test_paths.py'}::test_kernel_functions_pass_gradcheck_both_modes",
         f"{tests / 'test_paths.py'}::test_quaternion_to_matrix_second_derivatives_at_small_norms",
+        f"{tests / 'test_lie.py'}::test_jacobians_against_mpmath",
+        f"{tests / 'test_lie.py'}::test_jacobian_derivatives_across_the_threshold_and_beyond_pi",
     ]  # fmt: skip
     env = {**os.environ, "DIFFQUAT_TEST_KERNELS": str(path)}
     done = subprocess.run(

@@ -36,13 +36,31 @@ from diffquat.torch import _cpu, _dispatch
 # Which evaluation each call takes.
 
 
-def _decisions(run: Callable[[Callable[[torch.Tensor], torch.Tensor]], Any], x: torch.Tensor) -> set[str]:
-    """The evaluations ``quaternion_to_matrix`` chose inside ``run(probe)`` for the tensors it saw."""
+# The functions with more than one evaluation: (the chooser, the public function, an input, the module
+# of the formula each capture must take).
+CHOSEN: dict[
+    str, tuple[Callable[[torch.Tensor], Any], Callable[[torch.Tensor], torch.Tensor], tuple[int, ...], str]
+] = {
+    "quaternion_to_matrix": (_dispatch.quaternion_to_matrix, dq.quaternion_to_matrix, (5, 4), "_dispatch"),
+    "so3_left_jacobian_inverse": (
+        _dispatch.so3_left_jacobian_inverse,
+        dq.so3_left_jacobian_inverse,
+        (5, 3),
+        "_lie",
+    ),
+}
+
+
+def _decisions(
+    run: Callable[[Callable[[torch.Tensor], torch.Tensor]], Any], function: str = "quaternion_to_matrix"
+) -> set[str]:
+    """The evaluations ``function`` chose inside ``run(probe)`` for the tensors it saw."""
+    choose, public, _, _ = CHOSEN[function]
     seen: set[str] = set()
 
     def probe(t: torch.Tensor) -> torch.Tensor:
-        seen.add(_dispatch.quaternion_to_matrix(t).__module__.rsplit(".", 1)[-1])
-        return dq.quaternion_to_matrix(t)
+        seen.add(choose(t).__module__.rsplit(".", 1)[-1])
+        return public(t)
 
     run(probe)
     return seen
@@ -115,23 +133,27 @@ CAPTURES: dict[str, Callable[[Any, torch.Tensor], Any]] = {
 }
 
 
+@pytest.mark.parametrize("function", list(CHOSEN))
 @pytest.mark.parametrize("call", list(EAGER_CALLS))
-def test_eager_cpu_calls_take_the_kernels(call: str) -> None:
+def test_eager_cpu_calls_take_the_kernels(call: str, function: str) -> None:
     """Plain CPU tensors and parameters, recorded or not, in a ``torch.device`` context (a function mode
     that records nothing) or not: the C kernels."""
-    assert _decisions(lambda f: EAGER_CALLS[call](f, torch.randn(5, 4)), torch.randn(5, 4)) == {"_cpu"}
+    shape = CHOSEN[function][2]
+    assert _decisions(lambda f: EAGER_CALLS[call](f, torch.randn(shape)), function) == {"_cpu"}
 
 
 @pytest.mark.filterwarnings("ignore:`torch.jit.trace` is deprecated:DeprecationWarning")
 # torch.func.jvp goes through a torch module that still uses torch.jit.script.
 @pytest.mark.filterwarnings("ignore:`torch.jit.script` is deprecated:DeprecationWarning")
+@pytest.mark.parametrize("function", list(CHOSEN))
 @pytest.mark.parametrize("capture", list(CAPTURES))
-def test_captures_and_transforms_take_the_formula(capture: str) -> None:
+def test_captures_and_transforms_take_the_formula(capture: str, function: str) -> None:
     """Every graph capture, transform, dispatch mode and tensor subclass: the formula, which the
     capture records (the kernels write through raw pointers it would not see)."""
     torch._dynamo.reset()
-    x = torch.randn(5, 4)
-    assert _decisions(lambda f: CAPTURES[capture](f, x), x) == {"_dispatch"}
+    _, _, shape, formula = CHOSEN[function]
+    x = torch.randn(shape)
+    assert _decisions(lambda f: CAPTURES[capture](f, x), function) == {formula}
 
 
 def test_without_the_extension_everything_takes_the_formula(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -140,6 +162,7 @@ def test_without_the_extension_everything_takes_the_formula(monkeypatch: pytest.
     x = torch.randn(5, 4)
     assert _dispatch.quaternion_to_matrix(x) is _dispatch._formula_q2m
     assert _dispatch.matrix_to_quaternion(dq.quaternion_to_matrix(x)) is _core.matrix_to_quaternion
+    assert _dispatch.so3_left_jacobian(x[:, 1:]) is _lie.so3_left_jacobian
 
 
 def test_the_kernel_modules_do_not_import_the_dispatch() -> None:

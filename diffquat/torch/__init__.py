@@ -331,22 +331,23 @@ def so3_hat(omega: Tensor) -> Tensor:
 
 @documented(_lie.so3_left_jacobian)
 def so3_left_jacobian(omega: Tensor) -> Tensor:
-    return _B(_lie.so3_left_jacobian, omega)
+    # The formula or the C kernels (the four Jacobians alike): see _dispatch.py.
+    return _B(_lie.so3_left_jacobian, omega, choose=_dispatch.so3_left_jacobian)
 
 
 @documented(_lie.so3_right_jacobian)
 def so3_right_jacobian(omega: Tensor) -> Tensor:
-    return _B(_lie.so3_right_jacobian, omega)
+    return _B(_lie.so3_right_jacobian, omega, choose=_dispatch.so3_right_jacobian)
 
 
 @documented(_lie.so3_left_jacobian_inverse)
 def so3_left_jacobian_inverse(omega: Tensor) -> Tensor:
-    return _B(_lie.so3_left_jacobian_inverse, omega)
+    return _B(_lie.so3_left_jacobian_inverse, omega, choose=_dispatch.so3_left_jacobian_inverse)
 
 
 @documented(_lie.so3_right_jacobian_inverse)
 def so3_right_jacobian_inverse(omega: Tensor) -> Tensor:
-    return _B(_lie.so3_right_jacobian_inverse, omega)
+    return _B(_lie.so3_right_jacobian_inverse, omega, choose=_dispatch.so3_right_jacobian_inverse)
 
 
 @documented(_lie.so3_vee)

@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 from torch.autograd import forward_ad
 
-from .. import _core, _kernels
+from .. import _core, _kernels, _lie
 
 _DTYPE = {torch.float32: 0, torch.float64: 1}
 
@@ -190,3 +190,102 @@ def matrix_to_quaternion(xp: Any, matrix: Tensor, *, scalar_first: bool = True) 
 # The kernels write NaN rows for non-finite input themselves (diffquat._backend.nonfinite_rows).
 quaternion_to_matrix.handles_nonfinite = True  # type: ignore[attr-defined]
 matrix_to_quaternion.handles_nonfinite = True  # type: ignore[attr-defined]
+
+
+# ---------------------------------------------------------------------------------------------------
+# The SO(3) Jacobians and their inverses (diffquat._lie): one kernel each way for the four of them.
+
+# The kernels' ``kind`` of each function (see _kernels.c).
+JACOBIAN_KINDS = {
+    "so3_left_jacobian": 0,
+    "so3_right_jacobian": 1,
+    "so3_left_jacobian_inverse": 2,
+    "so3_right_jacobian_inverse": 3,
+}
+_JACOBIAN_FORMULAS = {kind: getattr(_lie, name) for name, kind in JACOBIAN_KINDS.items()}
+_SERIES: dict[torch.dtype, tuple[Tensor, tuple[int, int, int]]] = {}
+
+
+def _series(dtype: torch.dtype) -> tuple[Tensor, tuple[int, int, int]]:
+    """The core's series for ``dtype`` (:func:`diffquat._lie.series_table`, float64 numbers that the
+    kernel rounds to the dtype as the core's Python numbers are rounded), kept alive for the kernels'
+    pointer; built once per dtype."""
+    if dtype not in _SERIES:
+        flat, terms = _lie.series_table(float(torch.finfo(dtype).eps))
+        _SERIES[dtype] = torch.tensor(flat, dtype=torch.float64), terms
+    return _SERIES[dtype]
+
+
+def jac_forward(omega: Tensor, kind: int) -> Tensor:
+    """(..., 3) rotation vectors to (..., 3, 3) Jacobians of the given kind, one kernel."""
+    rows = omega.reshape(-1, 3)
+    out = torch.empty((rows.shape[0], 3, 3), dtype=omega.dtype, device=omega.device)
+    if rows.shape[0]:
+        row, component = rows.stride()
+        series, terms = _series(omega.dtype)
+        _kernels.jac_forward(
+            _DTYPE[omega.dtype], torch.get_num_threads(), rows.shape[0], kind,
+            rows.data_ptr(), row, component, series.data_ptr(), *terms, out.data_ptr(),
+        )  # fmt: skip
+    return out.reshape(*omega.shape[:-1], 3, 3)
+
+
+def jac_backward(omega: Tensor, grad: Tensor, kind: int) -> Tensor:
+    """``dL/dw`` from ``dL/dJ``, one kernel."""
+    rows, g = omega.reshape(-1, 3), grad.reshape(-1, 3, 3)
+    out = torch.empty((rows.shape[0], 3), dtype=omega.dtype, device=omega.device)
+    if rows.shape[0]:
+        row, component = rows.stride()
+        g_row, g_i, g_j = g.stride()
+        series, terms = _series(omega.dtype)
+        _kernels.jac_backward(
+            _DTYPE[omega.dtype], torch.get_num_threads(), rows.shape[0], kind,
+            rows.data_ptr(), row, component, g.data_ptr(), g_row, g_i, g_j,
+            series.data_ptr(), *terms, out.data_ptr(),
+        )  # fmt: skip
+    return out.reshape(omega.shape)
+
+
+class JacobianKernel(torch.autograd.Function):
+    """No ``jvp``: :mod:`._dispatch` gives forward-mode AD the formula."""
+
+    @staticmethod
+    def forward(ctx: Any, omega: Tensor, kind: int) -> Tensor:
+        ctx.kind = kind
+        ctx.save_for_backward(omega)
+        return jac_forward(omega, kind)
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor, None]:
+        (omega,) = ctx.saved_tensors
+        if torch.is_grad_enabled() or not _plain(grad, omega):
+            # Recorded for a double backward (or an unusual cotangent): the formula's own derivative,
+            # differentiable in both the rotation vectors and the cotangent.
+            create_graph = torch.is_grad_enabled()
+            with torch.enable_grad():
+                out = _JACOBIAN_FORMULAS[ctx.kind](torch, omega)
+            (cotangent,) = torch.autograd.grad(out, omega, grad, create_graph=create_graph)
+            return cotangent, None
+        return jac_backward(omega, grad, ctx.kind), None
+
+
+def _jacobian(name: str) -> Any:
+    kind = JACOBIAN_KINDS[name]
+
+    def evaluation(xp: Any, omega: Tensor) -> Tensor:
+        if torch.is_grad_enabled() and omega.requires_grad:
+            j: Tensor = JacobianKernel.apply(omega, kind)  # type: ignore[no-untyped-call]
+            return j
+        return jac_forward(omega, kind)
+
+    evaluation.__name__ = evaluation.__qualname__ = name
+    evaluation.__doc__ = f":func:`diffquat._lie.{name}` through the C kernels."
+    # Non-finite rows come out NaN by the same arithmetic as the core's (``|w|^2``, read by every entry).
+    evaluation.handles_nonfinite = True  # type: ignore[attr-defined]
+    return evaluation
+
+
+so3_left_jacobian = _jacobian("so3_left_jacobian")
+so3_right_jacobian = _jacobian("so3_right_jacobian")
+so3_left_jacobian_inverse = _jacobian("so3_left_jacobian_inverse")
+so3_right_jacobian_inverse = _jacobian("so3_right_jacobian_inverse")

@@ -1,5 +1,5 @@
-"""Which evaluation a torch call of ``quaternion_to_matrix`` or ``matrix_to_quaternion`` takes, decided in
-one place: :func:`quaternion_to_matrix` and :func:`matrix_to_quaternion` below.
+"""Which evaluation a torch call of ``quaternion_to_matrix``, ``matrix_to_quaternion`` or one of the four
+SO(3) Jacobians takes, decided in one place: the functions of those names below.
 
 Each conversion has three evaluations of the one map written in :mod:`diffquat._core`:
 
@@ -7,6 +7,9 @@ Each conversion has three evaluations of the one map written in :mod:`diffquat._
   or compiler traces it);
 - the **C kernels** of :mod:`._cpu` (CPU, eager): one pass over memory forward and one backward;
 - the **Triton kernels** of :mod:`._triton` (CUDA, eager): the same, one kernel each way.
+
+The Jacobians (``so3_left_jacobian`` and its right and inverse siblings) have the formula and the C
+kernels, and forward-mode AD takes their formula (no ``jvp``: see :func:`_jacobian`).
 
 The kernels write their output through a raw pointer (C) or launch on a buffer (Triton), which no
 graph capture records: a ``torch.jit.trace`` of a kernel call is a constant tensor, an export has no
@@ -34,11 +37,12 @@ from typing import Any
 
 import torch
 from torch import Tensor
+from torch.autograd import forward_ad
 from torch.jit._trace import is_tracing
 from torch.overrides import _get_current_function_mode_stack
 from torch.utils._device import DeviceContext
 
-from .. import _core
+from .. import _core, _lie
 
 Evaluation = Callable[..., Tensor]
 
@@ -129,6 +133,30 @@ def matrix_to_quaternion(matrix: Tensor) -> Evaluation:
     if matrix.is_cuda and (triton := _triton()) is not None:
         return triton.matrix_to_quaternion
     return _core.matrix_to_quaternion
+
+
+def _jacobian(name: str) -> Callable[[Tensor], Evaluation]:
+    """The chooser of the SO(3) Jacobian ``name``: the C kernels for a plain eager CPU tensor, otherwise
+    the formula (``diffquat._lie``). Forward-mode AD takes the formula too: the kernels' Function has no
+    ``jvp``, and the formula's tangent is what one would compute."""
+    formula: Evaluation = getattr(_lie, name)
+
+    def choose(omega: Tensor) -> Evaluation:
+        if capturing(omega) or not _kernel_input(omega) or forward_ad._current_level >= 0:
+            return formula
+        if omega.device.type == "cpu" and _cpu is not None:
+            evaluation: Evaluation = getattr(_cpu, name)
+            return evaluation
+        return formula
+
+    choose.__name__ = choose.__qualname__ = name
+    return choose
+
+
+so3_left_jacobian = _jacobian("so3_left_jacobian")
+so3_right_jacobian = _jacobian("so3_right_jacobian")
+so3_left_jacobian_inverse = _jacobian("so3_left_jacobian_inverse")
+so3_right_jacobian_inverse = _jacobian("so3_right_jacobian_inverse")
 
 
 def exporting_to_onnx() -> bool:
