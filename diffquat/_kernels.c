@@ -1,6 +1,7 @@
-/* diffquat._kernels: quaternion_to_matrix and matrix_to_quaternion on the CPU, forward and
- * backward, each one pass over memory. Two callers: diffquat.torch (Python entry points over raw
- * pointers, below) and diffquat.jax (XLA FFI handlers, at the end of this file).
+/* diffquat._kernels: quaternion_to_matrix, matrix_to_quaternion and the SO(3) Jacobians on the CPU,
+ * forward and backward, each one pass over memory. Two callers: diffquat.torch (Python entry points
+ * over raw pointers, below) and diffquat.jax (XLA FFI handlers of matrix_to_quaternion, at the end of
+ * this file).
  *
  * The CPU counterpart of diffquat/torch/_triton.py. Eager torch evaluates the core formulas as ~40
  * elementwise operations forward and as many backward, each a full pass over memory and a few
@@ -870,7 +871,7 @@ static PyMethodDef methods[] = {
 static struct PyModuleDef module = {
     PyModuleDef_HEAD_INIT,
     .m_name = "_kernels",
-    .m_doc = "quaternion_to_matrix and matrix_to_quaternion on the CPU, one pass each way (_kernels.c).",
+    .m_doc = "quaternion_to_matrix, matrix_to_quaternion and the SO(3) Jacobians on the CPU, one pass each way.",
     .m_size = -1,
     .m_methods = methods,
 };

@@ -1,5 +1,5 @@
-"""``quaternion_to_matrix`` and ``matrix_to_quaternion`` on the CPU through the C kernels of
-``_kernels.c``: one pass over memory forward, one backward, each.
+"""``quaternion_to_matrix``, ``matrix_to_quaternion`` and the four SO(3) Jacobians on the CPU through the
+C kernels of ``_kernels.c``: one pass over memory forward, one backward, each.
 
 An eager call then costs one kernel (and, where autograd records, one ``autograd.Function``)
 instead of the core's ~40 elementwise operations forward and as many backward: at small N that is
@@ -12,6 +12,10 @@ Every other derivative is the core's formula in differentiable torch operations:
 (``jvp``) the core's tangents, and where a double backward is being recorded (``create_graph=True``)
 the core's cotangents, which then differentiate again. So every order of derivative is the core's,
 with the core's choice of pivot. :mod:`._dispatch` calls this module only in plain eager mode.
+
+The Jacobians' backward kernel is their derivative written out (``_kernels.c`` says how), within a few
+ulps of autograd's derivative of the formula; their double backward differentiates the formula, and
+forward mode takes the formula from the start (their Function has no ``jvp``).
 """
 
 from __future__ import annotations
