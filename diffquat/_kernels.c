@@ -871,7 +871,8 @@ static PyMethodDef methods[] = {
 static struct PyModuleDef module = {
     PyModuleDef_HEAD_INIT,
     .m_name = "_kernels",
-    .m_doc = "quaternion_to_matrix, matrix_to_quaternion and the SO(3) Jacobians on the CPU, one pass each way.",
+    .m_doc = "quaternion_to_matrix, matrix_to_quaternion and the SO(3) Jacobians on the CPU, one pass "
+             "each way (_kernels.c).",
     .m_size = -1,
     .m_methods = methods,
 };
