@@ -90,7 +90,8 @@ int main(void) {
             const void *w = d ? (void *)w64 : (void *)w32;
             void *o = d ? (void *)o64 : (void *)o32, *r = d ? (void *)r64 : (void *)r32;
             size_t size = d ? sizeof(double) : sizeof(float);
-            Args a = {.a = w, .sa = {3, 1, 0}, .out = o, .first = kind, .series = d ? series64 : series32};
+            Args a = {.a = w, .sa = {3, 1, 0}, .out = o, .first = kind};
+            a.series = d ? series64 : series32;
             for (int k = 0; k < 3; ++k) a.terms[k] = d ? terms64[k] : terms32[k];
             run(KERNELS[JAC_FORWARD][d], &a, N, 1);
             canonical_nans(o, N * 9, d);
