@@ -3,7 +3,8 @@ accuracy table from the same run. ``python -m benchmarks.run [--quick] [--out DI
 
 Every method is timed in float32 on the same rotations, forward and forward + backward, at each batch
 size N. Times are medians over interleaved blocks (block b of every method runs before block b + 1 of
-any), so slow drifts of a shared machine hit all methods alike; the first call (warm-up, and for
+any, in an order that rotates from block to block), so slow drifts of a shared machine, and what one
+method leaves behind for the next, hit all methods alike; the first call (warm-up, and for
 ``torch.compile``/``jax.jit`` the compilation) is reported apart. The roofline row is a tensor copy that
 moves the same bytes as the conversion (input read + output written; forward + backward adds the
 input and the cotangent read and the input gradient written): each time is also a fraction of it.
@@ -553,8 +554,16 @@ def time_all(calls: dict[str, Callable[[], Any]], repeats: int, block_s: float) 
         once = max(time.perf_counter() - start, 1e-7)
         per_block[label] = max(1, int(block_s / once))
     samples: dict[str, list[float]] = {label: [] for label in calls}
-    for _ in range(repeats):
-        for label, call in calls.items():
+    labels = list(calls)
+    for block in range(repeats):
+        # The order rotates from block to block, so that each method follows each other one equally
+        # often. On these 2-core virtual machines a method's time depends on what ran just before it:
+        # jax forward + backward of so3_left_jacobian at N = 4096 ran 4x faster after a 15 ms block of
+        # single-threaded numpy, or of sleep, than after its own or torch.compile's calls (jaxlie
+        # alike), so a fixed order favoured whichever method came after numpy.
+        shift = block % len(labels)
+        for label in labels[shift:] + labels[:shift]:
+            call = calls[label]
             k = per_block[label]
             start = time.perf_counter()
             for _ in range(k):
