@@ -194,6 +194,11 @@ def axis_angle_to_quaternion(xp: Any, axis_angle: Any, *, scalar_first: bool = T
     return xp.concat([w[..., None], v] if scalar_first else [v, w[..., None]], axis=-1)
 
 
+# The Taylor series in u = t^2 of exp_factors: cos(t/2) = 1 - u/8 + u^2/384 - ... and
+# sin(t/2)/t = 1/2 - u/48 + u^2/3840 - ..., three terms each (exact below series_threshold).
+EXP_SERIES = ((1.0, -1 / 8, 1 / 384), (0.5, -1 / 48, 1 / 3840))
+
+
 def exp_factors(xp: Any, t2: Any) -> tuple[Any, Any]:
     """``(cos(t / 2), sin(t / 2) / t)`` of ``t2 = t^2``: the quaternion of a rotation vector ``v`` with
     ``|v|^2 = t2`` is ``(w, k v)``. Written once for :func:`axis_angle_to_quaternion` and
@@ -203,12 +208,19 @@ def exp_factors(xp: Any, t2: Any) -> tuple[Any, Any]:
     # derivative of sqrt at 0 (inf) never meets a zero cotangent.
     angle = xp.sqrt(xp.where(small, 1.0, t2))
     half = 0.5 * angle
-    # cos(a/2) = 1 - a^2/8 + a^4/384 - ...; sin(a/2)/a = 1/2 - a^2/48 + a^4/3840 - ... (the series sees
-    # 0 where it is not used, so that t2^2 cannot overflow there)
+    # the series (EXP_SERIES) sees 0 where it is not used, so that t2^2 cannot overflow there
     u = xp.where(small, t2, 0.0)
-    w = xp.where(small, 1.0 - u / 8.0 + u * u / 384.0, xp.cos(half))
-    k = xp.where(small, 0.5 - u / 48.0 + u * u / 3840.0, xp.sin(half) / angle)
+    (w0, w1, w2), (k0, k1, k2) = EXP_SERIES
+    w = xp.where(small, w0 + w1 * u + w2 * (u * u), xp.cos(half))
+    k = xp.where(small, k0 + k1 * u + k2 * (u * u), xp.sin(half) / angle)
     return w, k
+
+
+def exp_series_table(xp: Any, dtype: Any) -> list[float]:
+    """:func:`exp_factors`' threshold for ``dtype`` and its two series, as the C kernels read them
+    (``quaternion_plus``; ``diffquat/torch/_cpu.py``)."""
+    (w0, w1, w2), (k0, k1, k2) = EXP_SERIES
+    return [series_threshold(xp, dtype), w0, w1, w2, k0, k1, k2]
 
 
 def _canonical_components(xp: Any, q: Any, scalar_first: bool) -> Components:

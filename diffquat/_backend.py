@@ -217,12 +217,12 @@ class Backend:
         self,
         core_fn: Callable[..., Any],
         *arrays: Any,
-        choose: Callable[[Any], Callable[..., Any]] | None = None,
+        choose: Callable[..., Callable[..., Any]] | None = None,
         **options: Any,
     ) -> Any:
         """Validate ``arrays``, run ``core_fn`` in the compute dtype, return in the promoted dtype.
 
-        ``choose(x)``, given the first validated array in its compute dtype, may name another
+        ``choose(*xs)``, given the validated arrays in their compute dtype, may name another
         evaluation of the same map (a backend's fast path); one whose ``handles_nonfinite`` attribute
         is true applies :func:`nonfinite_rows`'s rule itself, as the core functions named in
         ``_core.NONFINITE_BY_ARITHMETIC`` do by their arithmetic."""
@@ -230,7 +230,7 @@ class Backend:
         checked, dtype = self.validate(fname, *arrays)
         compute = self.compute_dtype(dtype)
         inputs = [x if x is None or x.dtype == compute else self.astype(x, compute) for x in checked]
-        fn = core_fn if choose is None else choose(inputs[0])
+        fn = core_fn if choose is None else choose(*[x for x in inputs if x is not None])
         with self.guard(inputs[0]):
             out = fn(self.xp, *inputs, **options)
             if not (getattr(fn, "handles_nonfinite", False) or fname in _core.NONFINITE_BY_ARITHMETIC):

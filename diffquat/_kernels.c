@@ -1,5 +1,5 @@
-/* diffquat._kernels: quaternion_to_matrix, matrix_to_quaternion and the SO(3) Jacobians on the CPU,
- * forward and backward, each one pass over memory. Two callers: diffquat.torch (Python entry points
+/* diffquat._kernels: quaternion_to_matrix, matrix_to_quaternion, the SO(3) Jacobians and
+ * quaternion_plus on the CPU, forward and backward, each one pass over memory. Two callers: diffquat.torch (Python entry points
  * over raw pointers, below) and diffquat.jax (XLA FFI handlers of matrix_to_quaternion, at the end of
  * this file).
  *
@@ -47,6 +47,7 @@ typedef struct {
     const void *b;     /* dL/dR (q2m backward) or the result q (m2q backward) */
     const void *c;     /* dL/dq (m2q backward) */
     void *out;         /* contiguous output */
+    void *out2;        /* a second contiguous output (quaternion_plus backward: dL/dd) */
     int64_t sa[3];     /* strides of a: row, then (component) or (matrix row, matrix column) */
     int64_t sb[3];
     int64_t sc[3];
@@ -54,6 +55,7 @@ typedef struct {
                        /* for the Jacobians, which one (0 J_l, 1 J_r, 2 J_l^-1, 3 J_r^-1) */
     const double *series; /* the Jacobians' series: the threshold in u, then the coefficients */
     int64_t terms[3];  /* how many coefficients of each of the three series follow */
+    int right;         /* quaternion_plus: 1 for q exp(d), 0 for exp(d) q */
 } Args;
 
 typedef void (*Kernel)(const Args *, int64_t, int64_t);
@@ -567,15 +569,163 @@ DEFINE_KERNELS(double, f64, DBL_MIN, sqrt)
 DEFINE_JACOBIANS(float, f32, sqrtf, sinf, cosf)
 DEFINE_JACOBIANS(double, f64, sqrt, sin, cos)
 
+/* ---------------------------------------------------------------------------------------------
+ * quaternion_plus (diffquat/_lie.py): q exp(d) (right) or exp(d) q (left), as a unit quaternion,
+ * forward (q, d -> the product) and backward (q, d, dL/dout -> dL/dq, dL/dd). The forward is
+ * _lie._unit (q divided by its largest component, then normalised; the zero quaternion is the
+ * identity), _algebra.exp_factors (cos(t/2) and sin(t/2)/t of t^2 = |d|^2: a Taylor series below the
+ * core's threshold, whose coefficients and threshold come from the core's table, Args.series) and
+ * _lie._product, operation by operation. Non-finite rows come out NaN by the same arithmetic (a NaN or
+ * an infinity reaches every component through the norm of q or the angle of d).
+ *
+ * The backward is the derivative written out. For out = a b (Hamilton product), dL/da = g b* and
+ * dL/db = a* g (the multiplication matrices of b and b* are transposes of each other, for any b);
+ * through the normalisation u = s / |s| with s = q / big (big, the largest component, is a constant:
+ * it cancels), dL/dq = (dL/du - u <u, dL/du>) / |s| / big, 0 for the zero quaternion; through the step
+ * (w, k d), dL/dd = k dL/dv + 2 d (w' dL/dw + k' <dL/dv, d>), with w' = -k / 4 and
+ * k' = (w - 2 k) / (4 t^2) in closed form (derivatives in t^2), the series' own derivatives below the
+ * threshold (as autodiff of the core's series computes them). */
+
+/* o = p q, each as (w, x, y, z) */
+#define HAMILTON(T, pw, px, py, pz, qw, qx, qy, qz, ow, ox, oy, oz)                                   \
+    const T ow = (pw) * (qw) - ((px) * (qx) + (py) * (qy) + (pz) * (qz));                            \
+    const T ox = ((pw) * (qx) + (qw) * (px)) + ((py) * (qz) - (pz) * (qy));                          \
+    const T oy = ((pw) * (qy) + (qw) * (py)) + ((pz) * (qx) - (px) * (qz));                          \
+    const T oz = ((pw) * (qz) + (qw) * (pz)) + ((px) * (qy) - (py) * (qx))
+
+#define DEFINE_QPLUS(T, SUFFIX, TINY, SQRT, SIN, COS)                                                \
+    typedef struct {                                                                                \
+        T below, cw[3], ck[3]; /* the threshold in t^2; the series of cos(t/2) and sin(t/2)/t */     \
+    } Exp_##SUFFIX;                                                                                 \
+                                                                                                    \
+    static void exp_table_##SUFFIX(Exp_##SUFFIX *e, const double *table) {                          \
+        e->below = (T)table[0];                                                                     \
+        for (int i = 0; i < 3; ++i) e->cw[i] = (T)table[1 + i], e->ck[i] = (T)table[4 + i];         \
+    }                                                                                               \
+                                                                                                    \
+    /* _algebra.exp_factors at t2 = t^2: w = cos(t/2), k = sin(t/2)/t; dw, dk their derivatives */ \
+    static inline void exp_factors_##SUFFIX(const Exp_##SUFFIX *e, T t2, T *w, T *k, T *dw, T *dk) { \
+        const int small = t2 < e->below;                                                            \
+        const T tc = small ? (T)1 : t2, angle = SQRT(tc), half = (T)0.5 * angle;                    \
+        const T u = small ? t2 : (T)0;                                                              \
+        const T ch = COS(half), kc = SIN(half) / angle;                                             \
+        *w = small ? e->cw[0] + e->cw[1] * u + e->cw[2] * (u * u) : ch;                             \
+        *k = small ? e->ck[0] + e->ck[1] * u + e->ck[2] * (u * u) : kc;                             \
+        if (dw != NULL) {                                                                           \
+            *dw = small ? e->cw[1] + (T)2 * e->cw[2] * u : (T)-0.25 * kc;                           \
+            *dk = small ? e->ck[1] + (T)2 * e->ck[2] * u : (ch - (T)2 * kc) / ((T)4 * tc);          \
+        }                                                                                           \
+    }                                                                                               \
+                                                                                                    \
+    /* _lie._unit: uw .. uz, and scale = 1 / |q| (0 for the zero quaternion) */                    \
+    static inline void unit_##SUFFIX(T w, T x, T y, T z, T u[4], T *scale) {                        \
+        const T n2 = w * w + x * x + y * y + z * z;                                                 \
+        const int zero = n2 < TINY;                                                                 \
+        const T aw = w < 0 ? -w : w, ax = x < 0 ? -x : x, ay = y < 0 ? -y : y, az = z < 0 ? -z : z; \
+        const T a01 = aw >= ax ? aw : ax, a23 = ay >= az ? ay : az;                                 \
+        const T big = zero ? (T)1 : (a01 >= a23 ? a01 : a23);                                       \
+        const T sw = w / big, sx = x / big, sy = y / big, sz = z / big;                             \
+        const T inv = zero ? (T)0 : (T)1 / SQRT(sw * sw + sx * sx + sy * sy + sz * sz);             \
+        u[0] = zero ? (T)1 : sw * inv, u[1] = sx * inv, u[2] = sy * inv, u[3] = sz * inv;           \
+        *scale = inv / big;                                                                         \
+    }                                                                                               \
+                                                                                                    \
+    CLONES static void qplus_forward_##SUFFIX(const Args *args, int64_t begin, int64_t end) {      \
+        T v[4][BLOCK], d[3][BLOCK], r[4][BLOCK];                                                    \
+        Exp_##SUFFIX e;                                                                             \
+        exp_table_##SUFFIX(&e, args->series);                                                       \
+        const int f = args->first, right = args->right;                                             \
+        const T *qw = v[component(f, 0)], *qx = v[component(f, 1)];                                 \
+        const T *qy = v[component(f, 2)], *qz = v[component(f, 3)];                                 \
+        T *rw = r[component(f, 0)], *rx = r[component(f, 1)];                                       \
+        T *ry = r[component(f, 2)], *rz = r[component(f, 3)];                                       \
+        for (int64_t base = begin; base < end; base += BLOCK) {                                     \
+            const int cnt = (int)(end - base < BLOCK ? end - base : BLOCK);                         \
+            gather4_##SUFFIX(v, (const T *)args->a, args->sa, base, cnt);                           \
+            gather3_##SUFFIX(d, (const T *)args->b, args->sb, base, cnt);                           \
+            for (int j = 0; j < cnt; ++j) {                                                         \
+                T u[4], scale, w, k;                                                                \
+                unit_##SUFFIX(qw[j], qx[j], qy[j], qz[j], u, &scale);                               \
+                const T dx = d[0][j], dy = d[1][j], dz = d[2][j];                                   \
+                exp_factors_##SUFFIX(&e, dx * dx + dy * dy + dz * dz, &w, &k, NULL, NULL);          \
+                const T sx = k * dx, sy = k * dy, sz = k * dz;                                      \
+                if (right) {                                                                        \
+                    HAMILTON(T, u[0], u[1], u[2], u[3], w, sx, sy, sz, ow, ox, oy, oz);             \
+                    rw[j] = ow, rx[j] = ox, ry[j] = oy, rz[j] = oz;                                 \
+                } else {                                                                            \
+                    HAMILTON(T, w, sx, sy, sz, u[0], u[1], u[2], u[3], ow, ox, oy, oz);             \
+                    rw[j] = ow, rx[j] = ox, ry[j] = oy, rz[j] = oz;                                 \
+                }                                                                                   \
+            }                                                                                       \
+            scatter4_##SUFFIX((T *)args->out + 4 * base, r, cnt);                                   \
+        }                                                                                           \
+    }                                                                                               \
+                                                                                                    \
+    CLONES static void qplus_backward_##SUFFIX(const Args *args, int64_t begin, int64_t end) {     \
+        T v[4][BLOCK], d[3][BLOCK], h[4][BLOCK], r[4][BLOCK], rd[3][BLOCK];                         \
+        Exp_##SUFFIX e;                                                                             \
+        exp_table_##SUFFIX(&e, args->series);                                                       \
+        const int f = args->first, right = args->right;                                             \
+        const T *qw = v[component(f, 0)], *qx = v[component(f, 1)];                                 \
+        const T *qy = v[component(f, 2)], *qz = v[component(f, 3)];                                 \
+        const T *hw = h[component(f, 0)], *hx = h[component(f, 1)];                                 \
+        const T *hy = h[component(f, 2)], *hz = h[component(f, 3)];                                 \
+        T *rw = r[component(f, 0)], *rx = r[component(f, 1)];                                      \
+        T *ry = r[component(f, 2)], *rz = r[component(f, 3)];                                       \
+        for (int64_t base = begin; base < end; base += BLOCK) {                                     \
+            const int cnt = (int)(end - base < BLOCK ? end - base : BLOCK);                         \
+            gather4_##SUFFIX(v, (const T *)args->a, args->sa, base, cnt);                           \
+            gather3_##SUFFIX(d, (const T *)args->b, args->sb, base, cnt);                           \
+            gather4_##SUFFIX(h, (const T *)args->c, args->sc, base, cnt);                           \
+            for (int j = 0; j < cnt; ++j) {                                                         \
+                T u[4], scale, w, k, dw, dk;                                                        \
+                unit_##SUFFIX(qw[j], qx[j], qy[j], qz[j], u, &scale);                               \
+                const T dx = d[0][j], dy = d[1][j], dz = d[2][j];                                   \
+                exp_factors_##SUFFIX(&e, dx * dx + dy * dy + dz * dz, &w, &k, &dw, &dk);            \
+                const T sx = k * dx, sy = k * dy, sz = k * dz;                                      \
+                const T gw = hw[j], gx = hx[j], gy = hy[j], gz = hz[j];                             \
+                /* the cotangents of the unit quaternion (a) and of the step (b), or the reverse */ \
+                T au[4], as[4];                                                                     \
+                if (right) { /* out = u s: g s*, u* g */                                            \
+                    HAMILTON(T, gw, gx, gy, gz, w, -sx, -sy, -sz, pw, px, py, pz);                  \
+                    HAMILTON(T, u[0], -u[1], -u[2], -u[3], gw, gx, gy, gz, tw, tx, ty, tz);         \
+                    au[0] = pw, au[1] = px, au[2] = py, au[3] = pz;                                 \
+                    as[0] = tw, as[1] = tx, as[2] = ty, as[3] = tz;                                 \
+                } else { /* out = s u: s* g, g u* */                                                \
+                    HAMILTON(T, w, -sx, -sy, -sz, gw, gx, gy, gz, pw, px, py, pz);                  \
+                    HAMILTON(T, gw, gx, gy, gz, u[0], -u[1], -u[2], -u[3], tw, tx, ty, tz);         \
+                    au[0] = pw, au[1] = px, au[2] = py, au[3] = pz;                                 \
+                    as[0] = tw, as[1] = tx, as[2] = ty, as[3] = tz;                                 \
+                }                                                                                   \
+                const T dot = u[0] * au[0] + u[1] * au[1] + u[2] * au[2] + u[3] * au[3];            \
+                rw[j] = (au[0] - u[0] * dot) * scale, rx[j] = (au[1] - u[1] * dot) * scale;         \
+                ry[j] = (au[2] - u[2] * dot) * scale, rz[j] = (au[3] - u[3] * dot) * scale;         \
+                const T c = (T)2 * (as[0] * dw + dk * (as[1] * dx + as[2] * dy + as[3] * dz));      \
+                rd[0][j] = k * as[1] + c * dx, rd[1][j] = k * as[2] + c * dy;                       \
+                rd[2][j] = k * as[3] + c * dz;                                                      \
+            }                                                                                       \
+            scatter4_##SUFFIX((T *)args->out + 4 * base, r, cnt);                                   \
+            T *out2 = (T *)args->out2 + 3 * base;                                                   \
+            for (int j = 0; j < cnt; ++j) {                                                         \
+                for (int i = 0; i < 3; ++i) out2[3 * j + i] = rd[i][j];                             \
+            }                                                                                       \
+        }                                                                                           \
+    }
+
+DEFINE_QPLUS(float, f32, FLT_MIN, sqrtf, sinf, cosf)
+DEFINE_QPLUS(double, f64, DBL_MIN, sqrt, sin, cos)
+
 /* Kernels by name and dtype (0: float32, 1: float64). */
-enum { Q2M_FORWARD, Q2M_BACKWARD, M2Q_FORWARD, M2Q_BACKWARD, JAC_FORWARD, JAC_BACKWARD };
-static const Kernel KERNELS[6][2] = {
+enum { Q2M_FORWARD, Q2M_BACKWARD, M2Q_FORWARD, M2Q_BACKWARD, JAC_FORWARD, JAC_BACKWARD, QPLUS_FORWARD, QPLUS_BACKWARD };
+static const Kernel KERNELS[8][2] = {
     {q2m_forward_f32, q2m_forward_f64},
     {q2m_backward_f32, q2m_backward_f64},
     {m2q_forward_f32, m2q_forward_f64},
     {m2q_backward_f32, m2q_backward_f64},
     {jac_forward_f32, jac_forward_f64},
     {jac_backward_f32, jac_backward_f64},
+    {qplus_forward_f32, qplus_forward_f64},
+    {qplus_backward_f32, qplus_backward_f64},
 };
 
 typedef struct {
@@ -702,6 +852,28 @@ static PyObject *jac_backward(PyObject *self, PyObject *const *argv, Py_ssize_t 
     Args args = {.a = PTR(v[4]), .sa = {v[5], v[6], 0}, .b = PTR(v[7]), .sb = {v[8], v[9], v[10]},
                  .series = PTR(v[11]), .terms = {v[12], v[13], v[14]}, .out = PTR(v[15]), .first = (int)v[3]};
     return launch(KERNELS[JAC_BACKWARD][v[0] != 0], &args, v[2], v[1]);
+}
+
+/* qplus_forward(dtype, threads, n, first, right, q, q_row, q_component, d, d_row, d_component, table, out) */
+static PyObject *qplus_forward(PyObject *self, PyObject *const *argv, Py_ssize_t argc) {
+    (void)self; /* a module function: no instance */
+    int64_t v[13];
+    if (read_ints(argv, argc, 13, "qplus_forward", v) < 0) return NULL;
+    Args args = {.a = PTR(v[5]), .sa = {v[6], v[7], 0}, .b = PTR(v[8]), .sb = {v[9], v[10], 0},
+                 .series = PTR(v[11]), .out = PTR(v[12]), .first = (int)v[3], .right = (int)v[4]};
+    return launch(KERNELS[QPLUS_FORWARD][v[0] != 0], &args, v[2], v[1]);
+}
+
+/* qplus_backward(dtype, threads, n, first, right, q, q_row, q_component, d, d_row, d_component,
+ *                grad, grad_row, grad_component, table, out_q, out_d) */
+static PyObject *qplus_backward(PyObject *self, PyObject *const *argv, Py_ssize_t argc) {
+    (void)self; /* a module function: no instance */
+    int64_t v[17];
+    if (read_ints(argv, argc, 17, "qplus_backward", v) < 0) return NULL;
+    Args args = {.a = PTR(v[5]), .sa = {v[6], v[7], 0}, .b = PTR(v[8]), .sb = {v[9], v[10], 0},
+                 .c = PTR(v[11]), .sc = {v[12], v[13], 0}, .series = PTR(v[14]), .out = PTR(v[15]),
+                 .out2 = PTR(v[16]), .first = (int)v[3], .right = (int)v[4]};
+    return launch(KERNELS[QPLUS_BACKWARD][v[0] != 0], &args, v[2], v[1]);
 }
 
 /* ---------------------------------------------------------------------------------------------
@@ -863,6 +1035,10 @@ static PyMethodDef methods[] = {
      "The SO(3) Jacobians and their inverses, forward, over raw buffers."},
     {"jac_backward", (PyCFunction)(void (*)(void))jac_backward, METH_FASTCALL,
      "The SO(3) Jacobians and their inverses, backward, over raw buffers."},
+    {"qplus_forward", (PyCFunction)(void (*)(void))qplus_forward, METH_FASTCALL,
+     "quaternion_plus forward over raw buffers."},
+    {"qplus_backward", (PyCFunction)(void (*)(void))qplus_backward, METH_FASTCALL,
+     "quaternion_plus backward over raw buffers."},
     {"xla_handlers", xla_handlers, METH_NOARGS,
      "The matrix_to_quaternion kernels as XLA FFI handlers: {name: PyCapsule} (see diffquat/jax/_xla.py)."},
     {NULL, NULL, 0, NULL},
@@ -871,8 +1047,8 @@ static PyMethodDef methods[] = {
 static struct PyModuleDef module = {
     PyModuleDef_HEAD_INIT,
     .m_name = "_kernels",
-    .m_doc = "quaternion_to_matrix, matrix_to_quaternion and the SO(3) Jacobians on the CPU, one pass "
-             "each way (_kernels.c).",
+    .m_doc = "quaternion_to_matrix, matrix_to_quaternion, the SO(3) Jacobians and quaternion_plus on the "
+             "CPU, one pass each way (_kernels.c).",
     .m_size = -1,
     .m_methods = methods,
 };

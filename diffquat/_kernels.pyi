@@ -76,6 +76,42 @@ def jac_backward(
     out: int,
     /,
 ) -> None: ...
+def qplus_forward(
+    dtype: int,
+    threads: int,
+    n: int,
+    first: int,
+    right: int,
+    q: int,
+    q_row: int,
+    q_component: int,
+    d: int,
+    d_row: int,
+    d_component: int,
+    table: int,
+    out: int,
+    /,
+) -> None: ...
+def qplus_backward(
+    dtype: int,
+    threads: int,
+    n: int,
+    first: int,
+    right: int,
+    q: int,
+    q_row: int,
+    q_component: int,
+    d: int,
+    d_row: int,
+    d_component: int,
+    grad: int,
+    grad_row: int,
+    grad_component: int,
+    table: int,
+    out_q: int,
+    out_d: int,
+    /,
+) -> None: ...
 def xla_handlers() -> dict[str, Any]: ...
 
 PORTABLE: int  # 1 for the scalar build the tests make (DIFFQUAT_PORTABLE), 0 for the installed one

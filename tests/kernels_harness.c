@@ -3,7 +3,7 @@
  * float32 and float64, both storage orders, on deterministic inputs with edge rows, and prints a hash
  * of each output's bytes. Built natively and cross-compiled for aarch64 (run under qemu), the two
  * must print the same lines: the kernels give the same bits where there are no x86 intrinsics. The
- * Jacobian kernels call libm's sin and cos, which both glibc builds round alike on these inputs (a
+ * Jacobian and quaternion_plus kernels call libm's sin and cos, which both glibc builds round alike on these inputs (a
  * change of libm that rounds one of them differently shows here first). */
 #define DIFFQUAT_KERNELS_ONLY
 #include KERNELS_C /* the path of diffquat/_kernels.c, given by the test */
@@ -26,6 +26,7 @@ static uint64_t fnv(const void *data, size_t size) {
 /* The Jacobians' series, as diffquat/torch/_cpu.py passes them: given by the test from diffquat._lie. */
 static const double series64[] = SERIES_F64, series32[] = SERIES_F32;
 static const int64_t terms64[3] = TERMS_F64, terms32[3] = TERMS_F32;
+static const double exp64[] = EXP_F64, exp32[] = EXP_F32; /* quaternion_plus: exp_factors' table */
 
 static double w64[N][3];
 static float w32[N][3];
@@ -101,6 +102,27 @@ int main(void) {
             run(KERNELS[JAC_BACKWARD][d], &b, N, 1);
             canonical_nans(r, N * 3, d);
             printf("jac_backward %d %d %016llx\n", d, kind, (unsigned long long)fnv(r, N * 3 * size));
+        }
+    }
+    for (int d = 0; d < 2; ++d) {
+        for (int first = 0; first < 2; ++first) {
+            for (int right = 0; right < 2; ++right) {
+                const void *q = d ? (void *)q64 : (void *)q32, *w = d ? (void *)w64 : (void *)w32;
+                void *o = d ? (void *)o64 : (void *)o32, *r = d ? (void *)r64 : (void *)r32;
+                size_t size = d ? sizeof(double) : sizeof(float);
+                Args a = {.a = q, .sa = {4, 1, 0}, .b = w, .sb = {3, 1, 0}, .out = r, .first = first};
+                a.series = d ? exp64 : exp32, a.right = right;
+                run(KERNELS[QPLUS_FORWARD][d], &a, N, 1);
+                canonical_nans(r, N * 4, d);
+                printf("qplus_forward %d %d %d %016llx\n", d, first, right,
+                       (unsigned long long)fnv(r, N * 4 * size));
+                Args b = a;
+                b.c = d ? (void *)g4_64 : (void *)g4_32, b.sc[0] = 4, b.sc[1] = 1, b.out = r, b.out2 = o;
+                run(KERNELS[QPLUS_BACKWARD][d], &b, N, 1);
+                canonical_nans(r, N * 4, d), canonical_nans(o, N * 3, d);
+                printf("qplus_backward %d %d %d %016llx %016llx\n", d, first, right,
+                       (unsigned long long)fnv(r, N * 4 * size), (unsigned long long)fnv(o, N * 3 * size));
+            }
         }
     }
     return 0;

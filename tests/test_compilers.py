@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import tomllib
 
-from diffquat import _lie
+from diffquat import _algebra, _lie
 
 ROOT = Path(__file__).resolve().parents[1]
 KERNELS = ROOT / "diffquat" / "_kernels.c"
@@ -34,14 +34,16 @@ def release_flags() -> list[str]:
 
 
 def series_defines() -> list[str]:
-    """The Jacobian kernels' series tables for the harness, from the core (``_lie.series_table``), as
-    diffquat/torch/_cpu.py passes them: C initialisers in float64's shortest round-trip form."""
+    """The series tables of the Jacobian and quaternion_plus kernels for the harness, from the core
+    (``_lie.series_table``, ``_algebra.exp_series_table``), as diffquat/torch/_cpu.py passes them: C
+    initialisers in float64's shortest round-trip form."""
     defines = []
     for name, dtype in (("F32", np.float32), ("F64", np.float64)):
         flat, terms = _lie.series_table(float(np.finfo(dtype).eps))
         defines += [
             f"-DSERIES_{name}={{{', '.join(map(repr, flat))}}}",
             f"-DTERMS_{name}={{{', '.join(map(str, terms))}}}",
+            f"-DEXP_{name}={{{', '.join(map(repr, _algebra.exp_series_table(np, dtype)))}}}",
         ]
     return defines
 
@@ -99,5 +101,5 @@ def test_kernels_cross_compile_for_aarch64_and_give_the_same_bits(tmp_path: Path
     emulated = subprocess.run(
         [compiler("qemu-aarch64"), tmp_path / "aarch64"], capture_output=True, text=True, check=True
     ).stdout
-    assert len(native.splitlines()) == 32
+    assert len(native.splitlines()) == 48
     assert emulated == native

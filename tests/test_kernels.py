@@ -48,6 +48,7 @@ def test_the_extension_is_built() -> None:
     assert _dispatch.matrix_to_quaternion(torch.zeros(3, 3)) is _cpu.matrix_to_quaternion
     for name in _cpu.JACOBIAN_KINDS:
         assert getattr(_dispatch, name)(torch.zeros(3)) is getattr(_cpu, name)
+    assert _dispatch.quaternion_plus(torch.zeros(4), torch.zeros(3)) is _cpu.quaternion_plus
 
 
 def _quaternions(dtype: torch.dtype) -> torch.Tensor:
@@ -171,6 +172,86 @@ def test_jacobian_kernels_against_a_float64_reference(name: str, dtype: torch.dt
     assert grad_ulps.max() <= JACOBIAN_ULPS["gradients"], float(grad_ulps.max())
 
 
+# quaternion_plus through its kernels against the formula in float64, in ulps of the scale of each row
+# (values: 1; gradients: the cotangent's largest entry, over |q| for dL/dq): measured at most 3.1
+# (values, float32), 3.3 (dL/dq) and 1.7 (dL/dd), the float32 formula's own errors being the same.
+PLUS_ULPS = 6.0
+
+
+def _plus_inputs(dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """Quaternions of every case (the zero quaternion and norms from 1e-15 to 1e15 among them), paired
+    with rotation vectors at every scale of the angle (the series below sqrt(eps) in |d|^2 and the
+    closed form above, up to 30 radians), a NaN and an infinity in each."""
+    q = _quaternions(torch.float64)
+    w = _rotation_vectors(torch.float64)
+    n = max(len(q), len(w))
+    q, w = q.repeat(n // len(q) + 1, 1)[:n], w.repeat(n // len(w) + 1, 1)[:n]
+    q[-1, 2], q[-2, 0] = math.nan, math.inf
+    return q.to(dtype), w.to(dtype)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=str)
+@pytest.mark.parametrize("side", ["right", "left"])
+@pytest.mark.parametrize("scalar_first", [True, False], ids=["wxyz", "xyzw"])
+def test_quaternion_plus_kernels_against_a_float64_reference(
+    side: str, scalar_first: bool, dtype: torch.dtype
+) -> None:
+    """``quaternion_plus`` through its kernels (the public function's eager path), forward and backward,
+    against the formula in float64 on the same inputs differentiated by autograd; NaN rows for a
+    non-finite q or d, value and both gradients, and only there; the zero quaternion the identity with
+    a zero gradient."""
+    q, w = _plus_inputs(dtype)
+    cot = torch.randn(len(q), 4, generator=torch.Generator().manual_seed(18), dtype=torch.float64)
+    qd, wd = q.double().requires_grad_(True), w.double().requires_grad_(True)
+    ref = _lie.quaternion_plus(torch, qd, wd, side=side, scalar_first=scalar_first)
+    ref_q, ref_w = torch.autograd.grad(ref, (qd, wd), cot)
+    qk, wk = q.clone().requires_grad_(True), w.clone().requires_grad_(True)
+    out = dq.quaternion_plus(qk, wk, side=side, scalar_first=scalar_first)
+    assert type(out.grad_fn).__name__ == "QuaternionPlusKernelBackward"
+    gq, gw = torch.autograd.grad(out, (qk, wk), cot.to(dtype))
+    bad = ~(torch.isfinite(q).all(-1) & torch.isfinite(w).all(-1))
+    for x in (out, gq, gw):
+        assert x[bad].isnan().all() and x[~bad].isfinite().all()
+    eps = torch.finfo(dtype).eps
+    # the zero quaternion underflows differently in the two dtypes: compared where both read it alike
+    zero = (q.double() * q.double()).sum(-1) < torch.finfo(dtype).tiny
+    good = ~bad & (zero == ((qd * qd).sum(-1) < torch.finfo(torch.float64).tiny))
+    c = cot.abs().amax(-1)
+    value = (out.detach().double() - ref.detach()).abs().amax(-1)[good] / eps
+    grad_q = ((gq.double() - ref_q).abs().amax(-1) * qd.detach().norm(dim=-1) / c)[good & ~zero] / eps
+    grad_w = ((gw.double() - ref_w).abs().amax(-1) / c)[good] / eps
+    assert value.max() <= PLUS_ULPS, float(value.max())
+    assert grad_q.max() <= PLUS_ULPS, float(grad_q.max())
+    assert grad_w.max() <= PLUS_ULPS, float(grad_w.max())
+    assert torch.equal(gq[zero & ~bad], torch.zeros_like(gq[zero & ~bad]))
+
+
+def test_quaternion_plus_kernels_read_strided_and_broadcast_inputs() -> None:
+    """Slices of one packed array, a rotation vector shared by the whole batch (an expanded view, stride
+    0), and batch shapes that broadcast: the values and gradients of contiguous, materialised copies."""
+    gen = torch.Generator().manual_seed(19)
+    x = torch.randn(12, 7, generator=gen, dtype=torch.float64)
+    shared = torch.randn(3, generator=gen, dtype=torch.float64)
+    cot = torch.randn(12, 4, generator=gen, dtype=torch.float64)
+    q2 = torch.randn(2, 1, 4, generator=gen, dtype=torch.float64)
+    w2 = torch.randn(3, 3, generator=gen, dtype=torch.float64)
+    cot2 = torch.randn(2, 3, 4, generator=gen, dtype=torch.float64)
+    for (q, w, c), (qc, wc) in (
+        ((x[:, :4], x[:, 4:], cot), (x[:, :4].contiguous(), x[:, 4:].contiguous())),
+        ((x[:, :4], shared, cot), (x[:, :4].contiguous(), shared.expand(12, 3).contiguous())),
+        ((q2, w2, cot2), (q2.expand(2, 3, 4).contiguous(), w2.expand(2, 3, 3).contiguous())),
+    ):
+        a = [t.detach().clone().requires_grad_(True) for t in (q, w)]
+        b = [t.detach().clone().requires_grad_(True) for t in (qc, wc)]
+        out_a, out_b = dq.quaternion_plus(*a), dq.quaternion_plus(*b)
+        assert torch.equal(out_a, out_b)
+        grads_a = torch.autograd.grad(out_a, a, c)
+        grads_b = torch.autograd.grad(out_b, b, c)
+        for ga, gb, t in zip(grads_a, grads_b, (q, w), strict=True):
+            assert ga.shape == t.shape
+            torch.testing.assert_close(ga, gb.sum_to_size(t.shape), rtol=1e-14, atol=1e-14)
+
+
 @pytest.mark.parametrize("shape", [(), (0,), (2, 0, 3), (3, 1, 2), (7,)], ids=str)
 def test_batch_shapes(shape: tuple[int, ...]) -> None:
     """Any leading shape, scalar and empty batches included, and batch dimensions that do not
@@ -232,6 +313,23 @@ def test_rows_split_over_threads(threads: int) -> None:
     for a, b in zip(split, whole, strict=True):
         assert torch.equal(a, b)
 
+    # quaternion_plus likewise, values and both gradients
+    def plus(t: torch.Tensor) -> torch.Tensor:
+        return dq.quaternion_plus(t[:, :4], t[:, 4:], side="left")
+
+    x = torch.cat([q, w], dim=-1)
+    torch.set_num_threads(threads)
+    try:
+        split = _grad(plus, x, q.flip(0))
+    finally:
+        torch.set_num_threads(1)
+    try:
+        whole = _grad(plus, x, q.flip(0))
+    finally:
+        torch.set_num_threads(before)
+    for a, b in zip(split, whole, strict=True):
+        assert torch.equal(a, b)
+
 
 def test_which_calls_take_the_kernels() -> None:
     """Plain tensors and parameters take the kernels: through the Function where a derivative can be
@@ -250,6 +348,9 @@ def test_which_calls_take_the_kernels() -> None:
         assert getattr(dq, name)(w).grad_fn is None
         assert type(getattr(dq, name)(w.requires_grad_(True)).grad_fn).__name__ == "JacobianKernelBackward"
         w = w.detach()
+    assert dq.quaternion_plus(q, w).grad_fn is None
+    for a, b in ((param, w), (q, w.requires_grad_(True))):
+        assert type(dq.quaternion_plus(a, b).grad_fn).__name__ == "QuaternionPlusKernelBackward"
 
 
 # Forward-mode AD goes through a torch module that still uses torch.jit.script.
@@ -280,25 +381,62 @@ def test_forward_mode_without_requires_grad() -> None:
         theirs = torch.func.jvp(lambda t, n=name: getattr(_lie, n)(torch, t), (w,), (dw,))[1]
         assert ours is not None
         torch.testing.assert_close(ours, theirs, rtol=1e-12, atol=1e-12)
+    with forward_ad.dual_level():
+        assert _dispatch.quaternion_plus(q, w) is _lie.quaternion_plus
+        ours = forward_ad.unpack_dual(dq.quaternion_plus(forward_ad.make_dual(q, dq_), w)).tangent
+    theirs = torch.func.jvp(lambda t: _lie.quaternion_plus(torch, t, w), (q,), (dq_,))[1]
+    assert ours is not None
+    torch.testing.assert_close(ours, theirs, rtol=1e-12, atol=1e-12)
 
 
-def test_unusual_cotangent_takes_the_torch_formula() -> None:
+def test_unusual_cotangent_takes_the_torch_formula(monkeypatch: pytest.MonkeyPatch) -> None:
     """A cotangent the kernels cannot read as a plain buffer (here a tensor subclass, as tracing tools
-    pass) goes through the differentiable torch formula instead, with the same result."""
+    pass) goes through the differentiable torch formula instead, with the same result; the backward
+    kernels are not called."""
 
     class Wrapped(torch.Tensor):
         pass
 
     gen = torch.Generator().manual_seed(12)
     q = torch.randn(4, 4, generator=gen, dtype=torch.float64, requires_grad=True)
-    cot = torch.randn(4, 3, 3, generator=gen, dtype=torch.float64)
-    (plain,) = torch.autograd.grad(dq.quaternion_to_matrix(q), q, cot)
-    (wrapped,) = torch.autograd.grad(dq.quaternion_to_matrix(q), q, cot.as_subclass(Wrapped))
-    torch.testing.assert_close(torch.Tensor(wrapped), plain, rtol=1e-12, atol=1e-12)
     w = q.detach()[:, 1:].requires_grad_(True)
-    (plain,) = torch.autograd.grad(dq.so3_left_jacobian(w), w, cot)
-    (wrapped,) = torch.autograd.grad(dq.so3_left_jacobian(w), w, cot.as_subclass(Wrapped))
-    torch.testing.assert_close(torch.Tensor(wrapped), plain, rtol=1e-12, atol=1e-12)
+    cot = torch.randn(4, 3, 3, generator=gen, dtype=torch.float64)
+    cot4 = torch.randn(4, 4, generator=gen, dtype=torch.float64)
+    calls = {
+        "quaternion_to_matrix": (lambda: (dq.quaternion_to_matrix(q), q, cot)),
+        "so3_left_jacobian": (lambda: (dq.so3_left_jacobian(w), w, cot)),
+        "quaternion_plus": (lambda: (dq.quaternion_plus(q, w), q, cot4)),
+    }
+    plain = {}
+    for name, call in calls.items():
+        out, x, c = call()
+        plain[name] = torch.autograd.grad(out, x, c)[0]
+
+    def refuse(*args: object) -> None:
+        raise AssertionError("a backward kernel ran on a subclass cotangent")
+
+    for kernel in ("q2m_backward", "jac_backward", "qplus_backward"):
+        monkeypatch.setattr(_cpu, kernel, refuse)
+    for name, call in calls.items():
+        out, x, c = call()
+        (wrapped,) = torch.autograd.grad(out, x, c.as_subclass(Wrapped))
+        torch.testing.assert_close(torch.Tensor(wrapped), plain[name], rtol=1e-12, atol=1e-12)
+
+
+def test_zero_tensors_are_not_read_as_buffers() -> None:
+    """A ZeroTensor (``torch._efficientzerotensor``, which autograd hands for some zero cotangents) has
+    no buffer: as an input or a cotangent it takes the formula (a null pointer would crash the
+    process), and the results are those of zeros."""
+    w = torch.randn(4, 3, dtype=torch.float64, requires_grad=True)
+    zero_cot = torch._efficientzerotensor((4, 3, 3), dtype=torch.float64)
+    (g,) = torch.autograd.grad(dq.so3_left_jacobian(w), w, zero_cot)
+    assert torch.equal(torch.Tensor(g), torch.zeros(4, 3, dtype=torch.float64))
+    zero_w = torch._efficientzerotensor((4, 3), dtype=torch.float64)
+    eye = torch.eye(3, dtype=torch.float64).expand(4, 3, 3)
+    torch.testing.assert_close(dq.so3_left_jacobian(zero_w), eye, rtol=0, atol=0)
+    q = torch.randn(4, 4, dtype=torch.float64, requires_grad=True)
+    (gq,) = torch.autograd.grad(dq.quaternion_to_matrix(q), q, zero_cot)
+    assert torch.equal(torch.Tensor(gq), torch.zeros(4, 4, dtype=torch.float64))
 
 
 def test_lazily_negated_views() -> None:
@@ -350,6 +488,14 @@ def _all_kernels(module: object, dtype: torch.dtype) -> list[torch.Tensor]:
         cot3 = torch.randn(len(w), 3, 3, generator=gen, dtype=torch.float64).to(dtype)
         for kind in _cpu.JACOBIAN_KINDS.values():
             outs += [_cpu.jac_forward(w, kind), _cpu.jac_backward(w, cot3, kind)]
+        qs = q[: len(w)] if len(q) >= len(w) else q.repeat(len(w) // len(q) + 1, 1)[: len(w)]
+        cotq = torch.randn(len(w), 4, generator=gen, dtype=torch.float64).to(dtype)
+        for first in (True, False):
+            for right in (True, False):
+                outs += [
+                    _cpu.qplus_forward(qs, w, first, right),
+                    *_cpu.qplus_backward(qs, w, cotq, first, right),
+                ]
     finally:
         _cpu._kernels = before
     return outs

@@ -48,6 +48,13 @@ CHOSEN: dict[
         (5, 3),
         "_lie",
     ),
+    # two arguments: the quaternion and the rotation vector as slices of one (5, 7) input
+    "quaternion_plus": (
+        lambda t: _dispatch.quaternion_plus(t[..., :4], t[..., 4:]),
+        lambda t: dq.quaternion_plus(t[..., :4], t[..., 4:]),
+        (5, 7),
+        "_lie",
+    ),
 }
 
 

@@ -377,7 +377,10 @@ def so3_minus(matrix1: Tensor, matrix2: Tensor, *, side: Side = "right") -> Tens
 
 @documented(_lie.quaternion_plus)
 def quaternion_plus(q: Tensor, delta: Tensor, *, side: Side = "right", scalar_first: bool = True) -> Tensor:
-    return _B(_lie.quaternion_plus, q, delta, side=side, scalar_first=scalar_first)
+    # The formula or the C kernels: see _dispatch.py.
+    return _B(
+        _lie.quaternion_plus, q, delta, choose=_dispatch.quaternion_plus, side=side, scalar_first=scalar_first
+    )
 
 
 @documented(_lie.quaternion_minus)

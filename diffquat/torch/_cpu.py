@@ -1,5 +1,5 @@
-"""``quaternion_to_matrix``, ``matrix_to_quaternion`` and the four SO(3) Jacobians on the CPU through the
-C kernels of ``_kernels.c``: one pass over memory forward, one backward, each.
+"""``quaternion_to_matrix``, ``matrix_to_quaternion``, the four SO(3) Jacobians and ``quaternion_plus`` on
+the CPU through the C kernels of ``_kernels.c``: one pass over memory forward, one backward, each.
 
 An eager call then costs one kernel (and, where autograd records, one ``autograd.Function``)
 instead of the core's ~40 elementwise operations forward and as many backward: at small N that is
@@ -13,9 +13,10 @@ Every other derivative is the core's formula in differentiable torch operations:
 the core's cotangents, which then differentiate again. So every order of derivative is the core's,
 with the core's choice of pivot. :mod:`._dispatch` calls this module only in plain eager mode.
 
-The Jacobians' backward kernel is their derivative written out (``_kernels.c`` says how), within a few
-ulps of autograd's derivative of the formula; their double backward differentiates the formula, and
-forward mode takes the formula from the start (their Function has no ``jvp``).
+The backward kernels of the Jacobians and of ``quaternion_plus`` are their derivatives written out
+(``_kernels.c`` says how), within a few ulps of autograd's derivative of the formula; their double
+backward differentiates the formula, and forward mode takes the formula from the start (their
+Functions have no ``jvp``).
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ import torch
 from torch import Tensor
 from torch.autograd import forward_ad
 
-from .. import _core, _kernels, _lie
+from .. import _algebra, _core, _kernels, _lie
 
 _DTYPE = {torch.float32: 0, torch.float64: 1}
 
@@ -103,6 +104,7 @@ def _plain(grad: Tensor, like: Tensor) -> bool:
         and grad.layout == torch.strided
         and not grad.is_neg()
         and not grad.is_conj()
+        and not grad._is_zerotensor()  # autograd hands these for some zero cotangents: no buffer
     )
 
 
@@ -216,6 +218,8 @@ def _series(dtype: torch.dtype) -> tuple[Tensor, tuple[int, int, int]]:
     pointer; built once per dtype."""
     if dtype not in _SERIES:
         flat, terms = _lie.series_table(float(torch.finfo(dtype).eps))
+        # the kernels hold up to 16 coefficients per series and differentiate at least 3
+        assert all(3 <= n <= 16 for n in terms), terms
         _SERIES[dtype] = torch.tensor(flat, dtype=torch.float64), terms
     return _SERIES[dtype]
 
@@ -293,3 +297,100 @@ so3_left_jacobian = _jacobian("so3_left_jacobian")
 so3_right_jacobian = _jacobian("so3_right_jacobian")
 so3_left_jacobian_inverse = _jacobian("so3_left_jacobian_inverse")
 so3_right_jacobian_inverse = _jacobian("so3_right_jacobian_inverse")
+
+
+# ---------------------------------------------------------------------------------------------------
+# quaternion_plus (diffquat._lie): one kernel each way.
+
+_EXP_TABLES: dict[torch.dtype, Tensor] = {}
+
+
+def _exp_table(dtype: torch.dtype) -> Tensor:
+    """The core's ``exp_factors`` threshold and series for ``dtype``
+    (:func:`diffquat._algebra.exp_series_table`), kept alive for the kernels' pointer."""
+    if dtype not in _EXP_TABLES:
+        _EXP_TABLES[dtype] = torch.tensor(_algebra.exp_series_table(torch, dtype), dtype=torch.float64)
+    return _EXP_TABLES[dtype]
+
+
+def _rows(q: Tensor, delta: Tensor) -> tuple[torch.Size, Tensor, Tensor]:
+    """The broadcast batch shape of ``q`` (..., 4) and ``delta`` (..., 3), and both as rows of it
+    (expanded views where the batch shapes differ: the kernels read a stride of 0 in place)."""
+    batch = q.shape[:-1]
+    if delta.shape[:-1] != batch:
+        batch = torch.broadcast_shapes(batch, delta.shape[:-1])  # type: ignore[no-untyped-call]
+        q, delta = q.expand(*batch, 4), delta.expand(*batch, 3)
+    return batch, q.reshape(-1, 4), delta.reshape(-1, 3)
+
+
+def qplus_forward(q: Tensor, delta: Tensor, first: bool, right: bool) -> Tensor:
+    """``q exp(d)`` or ``exp(d) q`` as unit quaternions in ``q``'s storage order, one kernel."""
+    batch, rows, d = _rows(q, delta)
+    out = torch.empty((rows.shape[0], 4), dtype=q.dtype, device=q.device)
+    if rows.shape[0]:
+        (row, component), (d_row, d_component) = rows.stride(), d.stride()
+        _kernels.qplus_forward(
+            _DTYPE[q.dtype], torch.get_num_threads(), rows.shape[0], first, right,
+            rows.data_ptr(), row, component, d.data_ptr(), d_row, d_component,
+            _exp_table(q.dtype).data_ptr(), out.data_ptr(),
+        )  # fmt: skip
+    return out.reshape(*batch, 4)
+
+
+def qplus_backward(q: Tensor, delta: Tensor, grad: Tensor, first: bool, right: bool) -> tuple[Tensor, Tensor]:
+    """``(dL/dq, dL/dd)`` from ``dL/dout``, one kernel, each summed over the batch dimensions its
+    argument was broadcast along."""
+    _, rows, d = _rows(q, delta)
+    g = grad.reshape(-1, 4)
+    out_q = torch.empty((rows.shape[0], 4), dtype=q.dtype, device=q.device)
+    out_d = torch.empty((rows.shape[0], 3), dtype=q.dtype, device=q.device)
+    if rows.shape[0]:
+        (row, component), (d_row, d_component), (g_row, g_component) = rows.stride(), d.stride(), g.stride()
+        _kernels.qplus_backward(
+            _DTYPE[q.dtype], torch.get_num_threads(), rows.shape[0], first, right,
+            rows.data_ptr(), row, component, d.data_ptr(), d_row, d_component,
+            g.data_ptr(), g_row, g_component, _exp_table(q.dtype).data_ptr(),
+            out_q.data_ptr(), out_d.data_ptr(),
+        )  # fmt: skip
+    batch = grad.shape[:-1]
+    return out_q.reshape(*batch, 4).sum_to_size(q.shape), out_d.reshape(*batch, 3).sum_to_size(delta.shape)
+
+
+class QuaternionPlusKernel(torch.autograd.Function):
+    """No ``jvp``: :mod:`._dispatch` gives forward-mode AD the formula."""
+
+    @staticmethod
+    def forward(ctx: Any, q: Tensor, delta: Tensor, first: bool, right: bool) -> Tensor:
+        ctx.first, ctx.right = first, right
+        ctx.save_for_backward(q, delta)
+        return qplus_forward(q, delta, first, right)
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, Tensor | None, None, None]:
+        q, delta = ctx.saved_tensors
+        if torch.is_grad_enabled() or not _plain(grad, q):
+            # Recorded for a double backward (or an unusual cotangent): the formula's own derivative.
+            wanted = [x for x in (q, delta) if x.requires_grad]
+            with torch.enable_grad():
+                side = "right" if ctx.right else "left"
+                out = _lie.quaternion_plus(torch, q, delta, side=side, scalar_first=ctx.first)
+            grads = iter(torch.autograd.grad(out, wanted, grad, create_graph=torch.is_grad_enabled()))
+            dq, dd = (next(grads) if x.requires_grad else None for x in (q, delta))
+            return dq, dd, None, None
+        dq, dd = qplus_backward(q, delta, grad, ctx.first, ctx.right)
+        return dq, dd, None, None
+
+
+def quaternion_plus(
+    xp: Any, q: Tensor, delta: Tensor, *, side: str = "right", scalar_first: bool = True
+) -> Tensor:
+    """:func:`diffquat._lie.quaternion_plus` through the C kernels."""
+    right = _lie.check_side("quaternion_plus", side)
+    if torch.is_grad_enabled() and (q.requires_grad or delta.requires_grad):
+        out: Tensor = QuaternionPlusKernel.apply(q, delta, scalar_first, right)  # type: ignore[no-untyped-call]
+        return out
+    return qplus_forward(q, delta, scalar_first, right)
+
+
+# Non-finite rows come out NaN by the core's arithmetic (the norm of q, the angle of d).
+quaternion_plus.handles_nonfinite = True  # type: ignore[attr-defined]

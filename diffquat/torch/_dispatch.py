@@ -1,5 +1,5 @@
-"""Which evaluation a torch call of ``quaternion_to_matrix``, ``matrix_to_quaternion`` or one of the four
-SO(3) Jacobians takes, decided in one place: the functions of those names below.
+"""Which evaluation a torch call of ``quaternion_to_matrix``, ``matrix_to_quaternion``, one of the four
+SO(3) Jacobians or ``quaternion_plus`` takes, decided in one place: the functions of those names below.
 
 Each conversion has three evaluations of the one map written in :mod:`diffquat._core`:
 
@@ -8,8 +8,8 @@ Each conversion has three evaluations of the one map written in :mod:`diffquat._
 - the **C kernels** of :mod:`._cpu` (CPU, eager): one pass over memory forward and one backward;
 - the **Triton kernels** of :mod:`._triton` (CUDA, eager): the same, one kernel each way.
 
-The Jacobians (``so3_left_jacobian`` and its right and inverse siblings) have the formula and the C
-kernels, and forward-mode AD takes their formula (no ``jvp``: see :func:`_jacobian`).
+The Jacobians (``so3_left_jacobian`` and its right and inverse siblings) and ``quaternion_plus`` have the
+formula and the C kernels, and forward-mode AD takes their formula (no ``jvp``: see :func:`_jacobian`).
 
 The kernels write their output through a raw pointer (C) or launch on a buffer (Triton), which no
 graph capture records: a ``torch.jit.trace`` of a kernel call is a constant tensor, an export has no
@@ -75,8 +75,8 @@ def capturing(x: Tensor) -> bool:
 
 def _kernel_input(x: Tensor) -> bool:
     """A dense tensor whose buffer holds its values: not a lazily negated or conjugated view (its buffer
-    holds the values before the sign change)."""
-    return x.layout == torch.strided and not x.is_neg() and not x.is_conj()
+    holds the values before the sign change), nor a ZeroTensor (no buffer at all: a null pointer)."""
+    return x.layout == torch.strided and not x.is_neg() and not x.is_conj() and not x._is_zerotensor()
 
 
 def _triton() -> Any:
@@ -157,6 +157,23 @@ so3_left_jacobian = _jacobian("so3_left_jacobian")
 so3_right_jacobian = _jacobian("so3_right_jacobian")
 so3_left_jacobian_inverse = _jacobian("so3_left_jacobian_inverse")
 so3_right_jacobian_inverse = _jacobian("so3_right_jacobian_inverse")
+
+
+def quaternion_plus(q: Tensor, delta: Tensor) -> Evaluation:
+    """The evaluation of ``quaternion_plus`` for this call, given its (validated) inputs: the C kernels
+    for plain eager CPU tensors, otherwise the formula (forward-mode AD included, as for the
+    Jacobians)."""
+    if (
+        capturing(q)
+        or capturing(delta)
+        or not (_kernel_input(q) and _kernel_input(delta))
+        or forward_ad._current_level >= 0
+    ):
+        return _lie.quaternion_plus
+    if q.device.type == "cpu" and delta.device.type == "cpu" and _cpu is not None:
+        evaluation: Evaluation = _cpu.quaternion_plus
+        return evaluation
+    return _lie.quaternion_plus
 
 
 def exporting_to_onnx() -> bool:
