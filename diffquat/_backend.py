@@ -94,17 +94,12 @@ def nonfinite_rows(xp: Any, out: Any, arrays: list[tuple[Any, tuple[int, ...]]])
     path would document its own result. This one is a selection (no arithmetic on the bad values
     outside their row), so nothing leaks into other rows, and its derivative is the identity on the
     good rows and 0 from the output of the bad ones."""
-    # Which rows are bad, as a sum of 0 * x over each row: IEEE gives 0 * x = +-0 for finite x and NaN
-    # for NaN and +-inf, and a sum of zeros is 0 (where a sum of x itself could overflow), so the sum
-    # is NaN exactly in the bad rows. One product and one sum per input, where isfinite, a negation
-    # and an any per trailing axis each took a pass over memory in eager torch (the rule alone at
-    # N = 262144 for so3_plus's inputs: 8.1 ms -> ~5 ms). No compiler folds 0 * x to 0 for floats
-    # (that would be wrong for inf and NaN); tests/test_paths.py checks inductor's code.
+    # Which rows are bad: _core.zero_or_nan of each input, summed (NaN exactly in the bad rows). Where
+    # isfinite, a negation and an any per trailing axis each took a pass over memory in eager torch
+    # (the rule alone at N = 262144 for so3_plus's inputs: 8.1 ms -> ~5 ms).
     acc = None
     for x, trailing in arrays:
-        z = x * 0.0
-        if trailing:
-            z = xp.sum(z, axis=tuple(range(-len(trailing), 0)))
+        z = _core.zero_or_nan(xp, x, len(trailing))
         if acc is None:
             acc = z
         else:

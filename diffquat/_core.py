@@ -120,6 +120,17 @@ def computed_once(xp: Any, x: Any) -> Any:
     return x if barrier is None else barrier(x)
 
 
+def zero_or_nan(xp: Any, x: Any, trailing: int) -> Any:
+    """0 for each element of ``x``'s batch (all but the last ``trailing`` axes) whose entries are all
+    finite, NaN for one that holds a NaN or an infinity: the sum of ``0 * x`` over those axes. IEEE
+    gives ``0 * x = +-0`` for finite ``x`` and NaN for NaN and +-inf, and a sum of zeros is 0 (where a
+    sum of ``x`` itself could overflow). One product and one sum; no compiler folds ``0 * x`` to 0 for
+    floats (that would be wrong for inf and NaN; tests/test_paths.py checks inductor's code). Read by
+    ``_backend.nonfinite_rows`` and by functions that make non-finite rows NaN by their arithmetic."""
+    z = x * 0.0
+    return xp.sum(z, axis=tuple(range(-trailing, 0))) if trailing else z
+
+
 def cancelling_factor(xp: Any, x: Any) -> Any:
     """``x`` itself, as a constant of differentiation: only for a factor that cancels out of the
     result, such as the scale a vector is divided by before its norm is taken (``v / s / |v / s|`` is

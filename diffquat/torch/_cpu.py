@@ -21,6 +21,7 @@ Functions have no ``jvp``).
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import torch
@@ -198,6 +199,17 @@ quaternion_to_matrix.handles_nonfinite = True  # type: ignore[attr-defined]
 matrix_to_quaternion.handles_nonfinite = True  # type: ignore[attr-defined]
 
 
+def _formula_cotangents(formula: Any, inputs: tuple[Tensor, ...], grad: Tensor) -> list[Tensor | None]:
+    """The formula's own cotangents of ``inputs`` (None for those that need none), for a backward being
+    recorded (a double backward: differentiable in the inputs and in ``grad``) or given a cotangent
+    that is no plain buffer: ``formula()`` recomputes the output from ``inputs`` under autograd."""
+    wanted = [x for x in inputs if x.requires_grad]
+    with torch.enable_grad():
+        out = formula()
+    grads = iter(torch.autograd.grad(out, wanted, grad, create_graph=torch.is_grad_enabled()))
+    return [next(grads) if x.requires_grad else None for x in inputs]
+
+
 # ---------------------------------------------------------------------------------------------------
 # The SO(3) Jacobians and their inverses (diffquat._lie): one kernel each way for the four of them.
 
@@ -209,19 +221,17 @@ JACOBIAN_KINDS = {
     "so3_right_jacobian_inverse": 3,
 }
 _JACOBIAN_FORMULAS = {kind: getattr(_lie, name) for name, kind in JACOBIAN_KINDS.items()}
-_SERIES: dict[torch.dtype, tuple[Tensor, tuple[int, int, int]]] = {}
 
 
+@functools.cache  # eager only (never traced): a dict lookup per call
 def _series(dtype: torch.dtype) -> tuple[Tensor, tuple[int, int, int]]:
     """The core's series for ``dtype`` (:func:`diffquat._lie.series_table`, float64 numbers that the
     kernel rounds to the dtype as the core's Python numbers are rounded), kept alive for the kernels'
     pointer; built once per dtype."""
-    if dtype not in _SERIES:
-        flat, terms = _lie.series_table(float(torch.finfo(dtype).eps))
-        # the kernels hold up to 16 coefficients per series and differentiate at least 3
-        assert all(3 <= n <= 16 for n in terms), terms
-        _SERIES[dtype] = torch.tensor(flat, dtype=torch.float64), terms
-    return _SERIES[dtype]
+    flat, terms = _lie.series_table(float(torch.finfo(dtype).eps))
+    # the kernels hold up to 16 coefficients per series and differentiate at least 3
+    assert all(3 <= n <= 16 for n in terms), terms
+    return torch.tensor(flat, dtype=torch.float64), terms
 
 
 def jac_forward(omega: Tensor, kind: int) -> Tensor:
@@ -264,15 +274,12 @@ class JacobianKernel(torch.autograd.Function):
         return jac_forward(omega, kind)
 
     @staticmethod
-    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor, None]:
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, None]:
         (omega,) = ctx.saved_tensors
         if torch.is_grad_enabled() or not _plain(grad, omega):
-            # Recorded for a double backward (or an unusual cotangent): the formula's own derivative,
-            # differentiable in both the rotation vectors and the cotangent.
-            create_graph = torch.is_grad_enabled()
-            with torch.enable_grad():
-                out = _JACOBIAN_FORMULAS[ctx.kind](torch, omega)
-            (cotangent,) = torch.autograd.grad(out, omega, grad, create_graph=create_graph)
+            (cotangent,) = _formula_cotangents(
+                lambda: _JACOBIAN_FORMULAS[ctx.kind](torch, omega), (omega,), grad
+            )
             return cotangent, None
         return jac_backward(omega, grad, ctx.kind), None
 
@@ -302,15 +309,12 @@ so3_right_jacobian_inverse = _jacobian("so3_right_jacobian_inverse")
 # ---------------------------------------------------------------------------------------------------
 # quaternion_plus (diffquat._lie): one kernel each way.
 
-_EXP_TABLES: dict[torch.dtype, Tensor] = {}
 
-
+@functools.cache  # as _series
 def _exp_table(dtype: torch.dtype) -> Tensor:
     """The core's ``exp_factors`` threshold and series for ``dtype``
     (:func:`diffquat._algebra.exp_series_table`), kept alive for the kernels' pointer."""
-    if dtype not in _EXP_TABLES:
-        _EXP_TABLES[dtype] = torch.tensor(_algebra.exp_series_table(torch, dtype), dtype=torch.float64)
-    return _EXP_TABLES[dtype]
+    return torch.tensor(_algebra.exp_series_table(torch, dtype), dtype=torch.float64)
 
 
 def _rows(q: Tensor, delta: Tensor) -> tuple[torch.Size, Tensor, Tensor]:
@@ -369,13 +373,12 @@ class QuaternionPlusKernel(torch.autograd.Function):
     def backward(ctx: Any, grad: Tensor) -> tuple[Tensor | None, Tensor | None, None, None]:
         q, delta = ctx.saved_tensors
         if torch.is_grad_enabled() or not _plain(grad, q):
-            # Recorded for a double backward (or an unusual cotangent): the formula's own derivative.
-            wanted = [x for x in (q, delta) if x.requires_grad]
-            with torch.enable_grad():
-                side = "right" if ctx.right else "left"
-                out = _lie.quaternion_plus(torch, q, delta, side=side, scalar_first=ctx.first)
-            grads = iter(torch.autograd.grad(out, wanted, grad, create_graph=torch.is_grad_enabled()))
-            dq, dd = (next(grads) if x.requires_grad else None for x in (q, delta))
+            side = "right" if ctx.right else "left"
+            dq, dd = _formula_cotangents(
+                lambda: _lie.quaternion_plus(torch, q, delta, side=side, scalar_first=ctx.first),
+                (q, delta),
+                grad,
+            )
             return dq, dd, None, None
         dq, dd = qplus_backward(q, delta, grad, ctx.first, ctx.right)
         return dq, dd, None, None

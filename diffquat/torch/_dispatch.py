@@ -9,7 +9,8 @@ Each conversion has three evaluations of the one map written in :mod:`diffquat._
 - the **Triton kernels** of :mod:`._triton` (CUDA, eager): the same, one kernel each way.
 
 The Jacobians (``so3_left_jacobian`` and its right and inverse siblings) and ``quaternion_plus`` have the
-formula and the C kernels, and forward-mode AD takes their formula (no ``jvp``: see :func:`_jacobian`).
+formula and the C kernels, and forward-mode AD takes their formula (no ``jvp``: see
+:func:`_cpu_kernel_or_formula`).
 
 The kernels write their output through a raw pointer (C) or launch on a buffer (Triton), which no
 graph capture records: a ``torch.jit.trace`` of a kernel call is a constant tensor, an export has no
@@ -135,16 +136,16 @@ def matrix_to_quaternion(matrix: Tensor) -> Evaluation:
     return _core.matrix_to_quaternion
 
 
-def _jacobian(name: str) -> Callable[[Tensor], Evaluation]:
-    """The chooser of the SO(3) Jacobian ``name``: the C kernels for a plain eager CPU tensor, otherwise
-    the formula (``diffquat._lie``). Forward-mode AD takes the formula too: the kernels' Function has no
+def _cpu_kernel_or_formula(name: str, formula: Evaluation) -> Callable[..., Evaluation]:
+    """The chooser of a function whose only fast path is the C kernels (the SO(3) Jacobians,
+    ``quaternion_plus``): the kernels ``_cpu.<name>`` where every argument is a plain eager CPU tensor,
+    otherwise the formula. Forward-mode AD takes the formula too: those kernels' Functions have no
     ``jvp``, and the formula's tangent is what one would compute."""
-    formula: Evaluation = getattr(_lie, name)
 
-    def choose(omega: Tensor) -> Evaluation:
-        if capturing(omega) or not _kernel_input(omega) or forward_ad._current_level >= 0:
+    def choose(*xs: Tensor) -> Evaluation:
+        if forward_ad._current_level >= 0 or any(capturing(x) or not _kernel_input(x) for x in xs):
             return formula
-        if omega.device.type == "cpu" and _cpu is not None:
+        if _cpu is not None and all(x.device.type == "cpu" for x in xs):
             evaluation: Evaluation = getattr(_cpu, name)
             return evaluation
         return formula
@@ -153,27 +154,15 @@ def _jacobian(name: str) -> Callable[[Tensor], Evaluation]:
     return choose
 
 
-so3_left_jacobian = _jacobian("so3_left_jacobian")
-so3_right_jacobian = _jacobian("so3_right_jacobian")
-so3_left_jacobian_inverse = _jacobian("so3_left_jacobian_inverse")
-so3_right_jacobian_inverse = _jacobian("so3_right_jacobian_inverse")
-
-
-def quaternion_plus(q: Tensor, delta: Tensor) -> Evaluation:
-    """The evaluation of ``quaternion_plus`` for this call, given its (validated) inputs: the C kernels
-    for plain eager CPU tensors, otherwise the formula (forward-mode AD included, as for the
-    Jacobians)."""
-    if (
-        capturing(q)
-        or capturing(delta)
-        or not (_kernel_input(q) and _kernel_input(delta))
-        or forward_ad._current_level >= 0
-    ):
-        return _lie.quaternion_plus
-    if q.device.type == "cpu" and delta.device.type == "cpu" and _cpu is not None:
-        evaluation: Evaluation = _cpu.quaternion_plus
-        return evaluation
-    return _lie.quaternion_plus
+so3_left_jacobian = _cpu_kernel_or_formula("so3_left_jacobian", _lie.so3_left_jacobian)
+so3_right_jacobian = _cpu_kernel_or_formula("so3_right_jacobian", _lie.so3_right_jacobian)
+so3_left_jacobian_inverse = _cpu_kernel_or_formula(
+    "so3_left_jacobian_inverse", _lie.so3_left_jacobian_inverse
+)
+so3_right_jacobian_inverse = _cpu_kernel_or_formula(
+    "so3_right_jacobian_inverse", _lie.so3_right_jacobian_inverse
+)
+quaternion_plus = _cpu_kernel_or_formula("quaternion_plus", _lie.quaternion_plus)
 
 
 def exporting_to_onnx() -> bool:
