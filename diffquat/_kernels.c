@@ -1,7 +1,7 @@
 /* diffquat._kernels: quaternion_to_matrix, matrix_to_quaternion, the SO(3) Jacobians and
- * quaternion_plus on the CPU, forward and backward, each one pass over memory. Two callers: diffquat.torch (Python entry points
- * over raw pointers, below) and diffquat.jax (XLA FFI handlers of matrix_to_quaternion, at the end of
- * this file).
+ * quaternion_plus on the CPU, forward and backward, each one pass over memory. Two callers:
+ * diffquat.torch (Python entry points over raw pointers, below) and diffquat.jax (XLA FFI handlers of
+ * matrix_to_quaternion, the Jacobians and quaternion_plus, at the end of this file).
  *
  * The CPU counterpart of diffquat/torch/_triton.py. Eager torch evaluates the core formulas as ~40
  * elementwise operations forward and as many backward, each a full pass over memory and a few
@@ -965,8 +965,8 @@ static int64_t xla_rows(const XlaBuffer *buffer, int trailing) {
     return n;
 }
 
-/* m2q_forward: (matrix) -> q; m2q_backward: (matrix, q, dL/dq) -> dL/dR; q in the handler's order. */
-static void *xla_call(XlaCallFrame *frame, int kernel, int first) {
+/* Whether this call is not an execution: the metadata query (answered here) or another stage. */
+static int xla_not_executing(XlaCallFrame *frame) {
     XlaExtension *extension = frame->extension_start;
     if (extension != NULL && extension->type == XLA_EXTENSION_METADATA) {
         XlaMetadata *metadata = ((XlaMetadataExtension *)extension)->metadata;
@@ -976,13 +976,19 @@ static void *xla_call(XlaCallFrame *frame, int kernel, int first) {
             metadata->api_version = (XlaApiVersion){sizeof(XlaApiVersion), NULL, XLA_API_MAJOR, XLA_API_MINOR};
             metadata->traits = 0;
         }
-        return NULL;
+        return 1;
     }
-    if (frame->stage != XLA_STAGE_EXECUTE) return NULL;
+    return frame->stage != XLA_STAGE_EXECUTE;
+}
+
+static void *xla_ret(const XlaCallFrame *frame, int i) { return ((XlaBuffer *)frame->rets.items[i])->data; }
+
+/* m2q_forward: (matrix) -> q; m2q_backward: (matrix, q, dL/dq) -> dL/dR; q in the handler's order. */
+static void *xla_call(XlaCallFrame *frame, int kernel, int first) {
+    if (xla_not_executing(frame)) return NULL;
     const XlaBuffer *matrix = xla_arg(frame, 0);
     /* Dense row-major strides in elements: a matrix row is 9 apart, a quaternion row 4. */
-    Args args = {.a = matrix->data, .sa = {9, 3, 1}, .out = ((XlaBuffer *)frame->rets.items[0])->data,
-                 .first = first};
+    Args args = {.a = matrix->data, .sa = {9, 3, 1}, .out = xla_ret(frame, 0), .first = first};
     if (kernel == M2Q_BACKWARD) {
         args.b = xla_arg(frame, 1)->data, args.sb[0] = 4, args.sb[1] = 1;
         args.c = xla_arg(frame, 2)->data, args.sc[0] = 4, args.sc[1] = 1;
@@ -996,6 +1002,83 @@ static void *xla_m2q_forward_xyzw(XlaCallFrame *frame) { return xla_call(frame, 
 static void *xla_m2q_backward_wxyz(XlaCallFrame *frame) { return xla_call(frame, M2Q_BACKWARD, 1); }
 static void *xla_m2q_backward_xyzw(XlaCallFrame *frame) { return xla_call(frame, M2Q_BACKWARD, 0); }
 
+/* The tables that the torch binding passes with each call (the Jacobians' series, exp_factors'
+ * threshold and series), per dtype (0: float32, 1: float64): an XLA handler here takes no attributes,
+ * so diffquat/jax/_xla.py hands them over once, at import, before it registers the handlers. */
+#define XLA_SERIES_MAX 64
+static double xla_series[2][XLA_SERIES_MAX];
+static int64_t xla_terms[2][3];
+static double xla_exp[2][7];
+
+/* xla_set_tables(f64, series, n_series, terms0, terms1, terms2, exp_table): copies n_series doubles
+ * from the address `series` and 7 from `exp_table` (float64 arrays the caller keeps alive for the
+ * call), for float32 (f64 = 0) or float64 (f64 = 1). */
+static PyObject *xla_set_tables(PyObject *self, PyObject *const *argv, Py_ssize_t argc) {
+    (void)self; /* a module function: no instance */
+    int64_t v[7];
+    if (read_ints(argv, argc, 7, "xla_set_tables", v) < 0) return NULL;
+    const int64_t n = v[2], t0 = v[3], t1 = v[4], t2 = v[5];
+    /* each series holds 3 to MAX_TERMS coefficients (the kernels differentiate at least 3) */
+    const int readable = t0 >= 3 && t1 >= 3 && t2 >= 3 && t0 <= MAX_TERMS && t1 <= MAX_TERMS && t2 <= MAX_TERMS;
+    if (v[0] < 0 || v[0] > 1 || !readable || 1 + t0 + t1 + t2 != n || n > XLA_SERIES_MAX) {
+        PyErr_SetString(PyExc_ValueError, "xla_set_tables: a table that the kernels cannot read");
+        return NULL;
+    }
+    const double *series = (const double *)PTR(v[1]), *exp_table = (const double *)PTR(v[6]);
+    for (int64_t i = 0; i < n; ++i) xla_series[v[0]][i] = series[i];
+    xla_terms[v[0]][0] = t0, xla_terms[v[0]][1] = t1, xla_terms[v[0]][2] = t2;
+    for (int i = 0; i < 7; ++i) xla_exp[v[0]][i] = exp_table[i];
+    Py_RETURN_NONE;
+}
+
+/* jac_forward: (w) -> J; jac_backward: (w, dL/dJ) -> dL/dw; `kind` as Args.first. */
+static void *xla_jacobian(XlaCallFrame *frame, int kernel, int kind) {
+    if (xla_not_executing(frame)) return NULL;
+    const XlaBuffer *omega = xla_arg(frame, 0);
+    const int f64 = omega->dtype == XLA_F64;
+    Args args = {.a = omega->data, .sa = {3, 1, 0}, .out = xla_ret(frame, 0), .first = kind,
+                 .series = xla_series[f64], .terms = {xla_terms[f64][0], xla_terms[f64][1], xla_terms[f64][2]}};
+    if (kernel == JAC_BACKWARD) args.b = xla_arg(frame, 1)->data, args.sb[0] = 9, args.sb[1] = 3, args.sb[2] = 1;
+    run(KERNELS[kernel][f64], &args, xla_rows(omega, 1), xla_threads);
+    return NULL;
+}
+
+/* qplus_forward: (q, d) -> q exp(d) or exp(d) q; qplus_backward: (q, d, dL/dout) -> (dL/dq, dL/dd);
+ * q and d of one batch shape (the Python side broadcasts them), quaternions in the handler's order. */
+static void *xla_qplus(XlaCallFrame *frame, int kernel, int first, int right) {
+    if (xla_not_executing(frame)) return NULL;
+    const XlaBuffer *q = xla_arg(frame, 0);
+    const int f64 = q->dtype == XLA_F64;
+    Args args = {.a = q->data, .sa = {4, 1, 0}, .b = xla_arg(frame, 1)->data, .sb = {3, 1, 0},
+                 .series = xla_exp[f64], .out = xla_ret(frame, 0), .first = first, .right = right};
+    if (kernel == QPLUS_BACKWARD) {
+        args.c = xla_arg(frame, 2)->data, args.sc[0] = 4, args.sc[1] = 1;
+        args.out2 = xla_ret(frame, 1);
+    }
+    run(KERNELS[kernel][f64], &args, xla_rows(q, 1), xla_threads);
+    return NULL;
+}
+
+#define XLA_JACOBIAN(NAME, KIND)                                                                     \
+    static void *xla_jac_forward_##NAME(XlaCallFrame *f) { return xla_jacobian(f, JAC_FORWARD, KIND); } \
+    static void *xla_jac_backward_##NAME(XlaCallFrame *f) { return xla_jacobian(f, JAC_BACKWARD, KIND); }
+XLA_JACOBIAN(jl, 0)
+XLA_JACOBIAN(jr, 1)
+XLA_JACOBIAN(jl_inv, 2)
+XLA_JACOBIAN(jr_inv, 3)
+
+#define XLA_QPLUS(ORDER, FIRST, SIDE, RIGHT)                                                         \
+    static void *xla_qplus_forward_##ORDER##_##SIDE(XlaCallFrame *f) {                              \
+        return xla_qplus(f, QPLUS_FORWARD, FIRST, RIGHT);                                            \
+    }                                                                                                \
+    static void *xla_qplus_backward_##ORDER##_##SIDE(XlaCallFrame *f) {                             \
+        return xla_qplus(f, QPLUS_BACKWARD, FIRST, RIGHT);                                           \
+    }
+XLA_QPLUS(wxyz, 1, right, 1)
+XLA_QPLUS(wxyz, 1, left, 0)
+XLA_QPLUS(xyzw, 0, right, 1)
+XLA_QPLUS(xyzw, 0, left, 0)
+
 /* xla_handlers(): {name: PyCapsule of the handler}, for jax.ffi.register_ffi_target. */
 static PyObject *xla_handlers(PyObject *self, PyObject *unused) {
     (void)self, (void)unused; /* METH_NOARGS */
@@ -1007,6 +1090,12 @@ static PyObject *xla_handlers(PyObject *self, PyObject *unused) {
         {"m2q_forward_xyzw", xla_m2q_forward_xyzw},
         {"m2q_backward_wxyz", xla_m2q_backward_wxyz},
         {"m2q_backward_xyzw", xla_m2q_backward_xyzw},
+#define JAC_ROWS(NAME) {"jac_forward_" #NAME, xla_jac_forward_##NAME}, {"jac_backward_" #NAME, xla_jac_backward_##NAME}
+        JAC_ROWS(jl), JAC_ROWS(jr), JAC_ROWS(jl_inv), JAC_ROWS(jr_inv),
+#define QPLUS_ROWS(ORDER, SIDE)                                                                      \
+    {"qplus_forward_" #ORDER "_" #SIDE, xla_qplus_forward_##ORDER##_##SIDE},                         \
+        {"qplus_backward_" #ORDER "_" #SIDE, xla_qplus_backward_##ORDER##_##SIDE}
+        QPLUS_ROWS(wxyz, right), QPLUS_ROWS(wxyz, left), QPLUS_ROWS(xyzw, right), QPLUS_ROWS(xyzw, left),
     };
     PyObject *handlers = PyDict_New();
     if (handlers == NULL) return NULL;
@@ -1040,7 +1129,9 @@ static PyMethodDef methods[] = {
     {"qplus_backward", (PyCFunction)(void (*)(void))qplus_backward, METH_FASTCALL,
      "quaternion_plus backward over raw buffers."},
     {"xla_handlers", xla_handlers, METH_NOARGS,
-     "The matrix_to_quaternion kernels as XLA FFI handlers: {name: PyCapsule} (see diffquat/jax/_xla.py)."},
+     "The kernels as XLA FFI handlers: {name: PyCapsule} (see diffquat/jax/_xla.py)."},
+    {"xla_set_tables", (PyCFunction)(void (*)(void))xla_set_tables, METH_FASTCALL,
+     "The series tables of the XLA handlers of the Jacobians and quaternion_plus, per dtype."},
     {NULL, NULL, 0, NULL},
 };
 

@@ -1,6 +1,7 @@
 # The C extension diffquat/_kernels.c. The kernels take integer arguments only (data pointers, strides
 # in elements, sizes and flags); diffquat/torch/_cpu.py is their only caller. xla_handlers gives the
-# same kernels as XLA FFI handlers, for diffquat/jax/_xla.py.
+# same kernels as XLA FFI handlers, for diffquat/jax/_xla.py, and xla_set_tables hands those the
+# series tables that the torch binding passes with each call.
 from typing import Any
 
 def q2m_forward(
@@ -113,5 +114,8 @@ def qplus_backward(
     /,
 ) -> None: ...
 def xla_handlers() -> dict[str, Any]: ...
+def xla_set_tables(
+    f64: int, series: int, n_series: int, terms0: int, terms1: int, terms2: int, exp_table: int, /
+) -> None: ...
 
 PORTABLE: int  # 1 for the scalar build the tests make (DIFFQUAT_PORTABLE), 0 for the installed one

@@ -1359,6 +1359,21 @@ OPS += [
 
 OPS_BY_NAME = {op.id: op for op in OPS}
 
+# The rows whose CPU program ``diffquat.jax.cpu_kernels`` changes, and the C kernel (XLA custom-call
+# target, less its "diffquat_" prefix) their forward program then calls: the quaternion step of
+# matrix_to_axis_angle and of so3_log is matrix_to_quaternion's. test_jax_deploy.py checks every row
+# against this table; test_grads.py compares the kernels' values and derivatives with the formula's.
+JAX_KERNELS = {
+    "matrix_to_quaternion": "m2q_forward_wxyz",
+    "matrix_to_axis_angle": "m2q_forward_wxyz",
+    "so3_log": "m2q_forward_wxyz",
+    "so3_left_jacobian": "jac_forward_jl",
+    "so3_right_jacobian": "jac_forward_jr",
+    "so3_left_jacobian_inverse": "jac_forward_jl_inv",
+    "so3_right_jacobian_inverse": "jac_forward_jr_inv",
+    "quaternion_plus[left]": "qplus_forward_wxyz_left",
+}
+
 # Public names that are not rows of the table, with the test that covers each.
 NOT_IN_TABLE = {
     "random_quaternions": "tests/test_random.py",

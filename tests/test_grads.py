@@ -16,6 +16,8 @@ from cases import (
     CASES_BY_NAME,
     EDGE_CASES,
     GRAD_DTYPE,
+    JAX_KERNELS,
+    OPS,
     Case,
     Op,
     base_rows,
@@ -330,49 +332,73 @@ def test_jax_matrix_to_quaternion_value_under_differentiation(scalar_first: bool
     np.testing.assert_array_equal(np.sign(differentiated), np.sign(plain))
 
 
-@pytest.mark.parametrize("scalar_first", [True, False], ids=["wxyz", "xyzw"])
-def test_jax_matrix_to_quaternion_kernels_differentiate_as_the_formula(scalar_first: bool) -> None:
-    """With ``cpu_kernels`` on, jax's matrix_to_quaternion calls the C kernels on the CPU
-    (diffquat/jax/_xla.py: three primitives, with derivative rules of their own); by default, and off
-    the CPU, it is the formula (``_M2Q``). Both give the same values and the same first and second
-    derivatives, forward and reverse, under ``vmap`` too, on rotations (half-turns among them) and on
-    matrices off SO(3); ``check_grads`` passes on the formula (the public function, the formula by
-    default, is checked by the tests above)."""
-    from diffquat.jax import _M2Q
-    from diffquat.jax._namespace import XP
+# The rows of jax functions with C kernels (cases.JAX_KERNELS), in each storage order they take.
+KERNEL_ROWS = [
+    (op, first)
+    for op in OPS
+    if op.id in JAX_KERNELS
+    for first in ((True, False) if op.scalar_first else (True,))
+]
 
-    if BACKENDS["jax"].module._xla is None:
+
+@pytest.mark.parametrize(
+    ("op", "scalar_first"), KERNEL_ROWS, ids=[f"{op.id}-{'wxyz' if f else 'xyzw'}" for op, f in KERNEL_ROWS]
+)
+def test_jax_kernels_differentiate_as_the_formula(op: Op, scalar_first: bool) -> None:
+    """With ``cpu_kernels`` on, the jax functions of ``cases.JAX_KERNELS`` call the C kernels on the CPU
+    (diffquat/jax/_xla.py: three primitives each, with derivative rules of their own); by default, and
+    off the CPU, they are the formula. Both give the same values (non-finite rows included) and the
+    same first and second derivatives, forward and reverse, under ``vmap`` too, on the table's named
+    cases (half-turns, the identity, any norm, the zero quaternion among them) and on inputs off the
+    manifold (matrices off SO(3)); and ``check_grads`` passes on the kernels themselves."""
+    module = BACKENDS["jax"].module
+    if module._xla is None:
         pytest.skip("the C extension is not built (no C compiler at install)")
-    names = ("random", "identity", "half_turns", "near_half_turns", "near_identity")
-    rotations = oracle_quaternion_to_matrix(
-        np.concatenate([CASES_BY_NAME[name].quaternions("float64").reshape(-1, 4) for name in names])
-    )
-    m = jnp.asarray(np.concatenate([rotations, perturbed_rotations(16, seed=11)]))
-    rng = np.random.default_rng(12)
-    t, w = jnp.asarray(rng.normal(size=m.shape)), jnp.asarray(rng.normal(size=(*m.shape[:-2], 4)))
-    even = len(m) // 2 * 2
-    kernels = lambda x: BACKENDS["jax"].module.matrix_to_quaternion(x, scalar_first=scalar_first)  # noqa: E731
-    formula = lambda x: _M2Q[scalar_first](XP, x)  # noqa: E731
+    names = ("random", "identity", "half_turns", "near_half_turns", "near_identity", "norms", "zero")
+    q = np.concatenate([CASES_BY_NAME[name].quaternions("float64").reshape(-1, 4) for name in names])
+    rng = np.random.default_rng(11)
+    # rows off the manifold: the first 16 of every input perturbed
+    inputs = [np.concatenate([x, x[:16] + 1e-3 * rng.normal(size=x[:16].shape)]) for x in op.inputs(q)]
+    if not scalar_first:
+        inputs = [op.to_scalar_last(x) if i in op.quaternion_args else x for i, x in enumerate(inputs)]
+    xs = tuple(jnp.asarray(x) for x in inputs)
+    argnums = tuple(range(len(xs)))
+
+    def f(*args: Any) -> Any:
+        return op(module, *args, **({"scalar_first": scalar_first} if op.scalar_first else {}))
+
+    w = jnp.asarray(rng.normal(size=f(*xs).shape))
+    t = tuple(jnp.asarray(rng.normal(size=x.shape)) for x in xs)
+    even = len(xs[0]) // 2 * 2
+    pairs = tuple(x[:even].reshape(-1, 2, *x.shape[1:]) for x in xs)
+    # a NaN row and an infinite row in each input, and a finite row beside them
+    nonfinite = tuple(x[:5].at[2 * i].set(np.nan).at[2 * i + 1].set(np.inf) for i, x in enumerate(xs))
+
+    def loss(*args: Any) -> Any:
+        return (f(*args) * w).sum()
+
+    def weighted_grad(*args: Any) -> Any:  # the gradient of f . weights, the weights last
+        return jax.grad(lambda *a: (f(*a) * args[-1]).sum(), argnums)(*args[:-1])
+
     evaluations = (
-        lambda f: f(m),
-        lambda f: jax.jvp(f, (m,), (t,))[1],
-        lambda f: jax.vjp(f, m)[1](w)[0],
-        lambda f: jax.jvp(jax.grad(lambda x: (f(x) * w).sum()), (m,), (t,))[1],  # second order
-        lambda f: jax.grad(lambda x: (jax.jvp(f, (x,), (t,))[1] * w).sum())(m),  # forward, then reverse
-        lambda f: jax.vmap(jax.vmap(jax.grad(lambda x, v: (f(x) * v).sum())), (1, 1))(
-            m[:even].reshape(-1, 2, 3, 3), w[:even].reshape(-1, 2, 4)
-        ),
+        lambda: f(*xs),
+        lambda: f(*nonfinite),
+        lambda: jax.jvp(f, xs, t)[1],
+        lambda: jax.vjp(f, *xs)[1](w),
+        lambda: jax.jvp(jax.grad(loss, argnums), xs, t)[1],  # second order
+        lambda: jax.grad(lambda *a: (jax.jvp(f, a, t)[1] * w).sum(), argnums)(*xs),  # forward, then reverse
+        lambda: jax.vmap(
+            jax.vmap(jax.grad(lambda *a: (f(*a[:-1]) * a[-1]).sum(), argnums)), (1,) * (len(xs) + 1)
+        )(*pairs, w[:even].reshape(-1, 2, *w.shape[1:])),
     )
     for evaluate in evaluations:
-        with BACKENDS["jax"].module.cpu_kernels():  # traced with the kernels (tests/test_xla.py)
-            by_kernels = jax.jit(evaluate, static_argnums=0)(kernels)
-        np.testing.assert_allclose(
-            np.asarray(by_kernels),
-            np.asarray(jax.jit(evaluate, static_argnums=0)(formula)),
-            rtol=1e-12,
-            atol=1e-12,
-        )
-    check_grads(formula, (m[-16:],), order=2, modes=("fwd", "rev"), eps=1e-6)
+        with module.cpu_kernels():  # traced with the kernels (tests/test_xla.py)
+            by_kernels = jax.jit(evaluate)()
+        by_formula = jax.jit(evaluate)()
+        for a, b in zip(jax.tree.leaves(by_kernels), jax.tree.leaves(by_formula), strict=True):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-12)
+    with module.cpu_kernels():
+        check_grads(f, tuple(x[-16:] for x in xs), order=2, modes=("fwd", "rev"), eps=1e-6)
 
 
 @only(backend=lambda b: b in ("torch", "jax"), dtype=lambda d: d != GRAD_DTYPE)

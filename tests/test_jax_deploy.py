@@ -28,16 +28,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from cases import CASES_BY_NAME, OPS, OPS_BY_NAME, VALUE_TOL, Op
+from cases import CASES_BY_NAME, JAX_KERNELS, OPS, OPS_BY_NAME, VALUE_TOL, Op
 from jax.sharding import AxisType, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 import diffquat.jax as dq
 
-# The functions whose CPU program the switch changes (the quaternion step of matrix_to_axis_angle, and
-# of so3_log, its map under its Lie name, is matrix_to_quaternion's); test_the_switch_decides_the_cpu_program
-# checks this against every row.
-KERNEL_OPS = frozenset({"matrix_to_quaternion", "matrix_to_axis_angle", "so3_log"})
+# The rows whose CPU program the switch changes (cases.JAX_KERNELS);
+# test_the_switch_decides_the_cpu_program checks the table against every row.
+KERNEL_OPS = frozenset(JAX_KERNELS)
 CASE = CASES_BY_NAME["random"]  # 64 rotations
 SYMBOLIC_CALL = 7  # the batch size a symbolic artefact is called at: one that no export saw
 AXIS = "batch"
@@ -156,7 +155,7 @@ def _artefacts() -> dict[str, Artefact]:
                 function(op), inputs(op, dtype, batch), shape == "symbolic"
             )
     for op in OPS:
-        if op.name in KERNEL_OPS:  # exported with the switch on: forward, and reverse mode (a vjp)
+        if op.id in KERNEL_OPS:  # exported with the switch on: forward, and reverse mode (a vjp)
             out[f"{op.id}-kernels-forward"] = Artefact(function(op), inputs(op, "float64"), symbolic=False)
             out[f"{op.id}-kernels-vjp"] = Artefact(vjp(function(op)), inputs(op, "float64"), symbolic=False)
     return out
@@ -232,7 +231,7 @@ def test_exports_by_default_and_runs_without_diffquat(
 
 @needs_kernels
 @pytest.mark.parametrize("mode", ["forward", "vjp"])
-@pytest.mark.parametrize("op", [op for op in OPS if op.name in KERNEL_OPS], ids=lambda op: op.id)
+@pytest.mark.parametrize("op", [op for op in OPS if op.id in KERNEL_OPS], ids=lambda op: op.id)
 def test_export_with_the_kernels_on_takes_the_formula(op: Op, mode: str, exported: Exported) -> None:
     """With the switch on, a program lowered for ``jax.export`` takes the formula on the CPU too (as
     ``cpu_kernels`` documents): it exports, forward and reverse mode, and runs without diffquat."""
@@ -284,7 +283,7 @@ def test_every_function_runs_on_two_devices(op: Op, transform: str, mesh: Any) -
 
 @needs_kernels
 @pytest.mark.parametrize("transform", TRANSFORMS)
-@pytest.mark.parametrize("op", [op for op in OPS if op.name in KERNEL_OPS], ids=lambda op: op.id)
+@pytest.mark.parametrize("op", [op for op in OPS if op.id in KERNEL_OPS], ids=lambda op: op.id)
 def test_the_kernels_run_on_two_devices(op: Op, transform: str, mesh: Any) -> None:
     """With the switch on, the kernels' primitives keep their input's type (its sharding, and the
     mesh axes it varies over inside ``shard_map``), so the three transforms trace them, forward and
@@ -315,9 +314,9 @@ def test_the_switch_decides_the_cpu_program(op: Op) -> None:
     fn = jax.jit(function(op))
     with dq.cpu_kernels():
         program = fn.lower(*xs).as_text()
-        if op.name in KERNEL_OPS:
+        if op.id in KERNEL_OPS:
             close(fn(*xs), eager(op))
-    assert kernel_calls(program) == (["diffquat_m2q_forward_wxyz"] if op.name in KERNEL_OPS else [])
+    assert kernel_calls(program) == ([f"diffquat_{JAX_KERNELS[op.id]}"] if op.id in KERNEL_OPS else [])
 
 
 @needs_kernels

@@ -1,7 +1,7 @@
-"""The C kernels of ``quaternion_to_matrix``, ``matrix_to_quaternion`` and the SO(3) Jacobians
-(diffquat/_kernels.c, bound for torch in diffquat/torch/_cpu.py and, the second, for jax in
-diffquat/jax/_xla.py): what the shared matrix, tests/test_paths.py, tests/test_lie.py and the jax tests
-do not already check through them.
+"""The C kernels of ``quaternion_to_matrix``, ``matrix_to_quaternion``, the SO(3) Jacobians and
+``quaternion_plus`` (diffquat/_kernels.c, bound for torch in diffquat/torch/_cpu.py and, all but the
+first, for jax in diffquat/jax/_xla.py): what the shared matrix, tests/test_paths.py,
+tests/test_lie.py and the jax tests do not already check through them.
 
 The shared matrix runs every case, dtype, gradient and transform through the public torch functions,
 which take the kernels for eager CPU tensors; tests/test_paths.py checks each evaluation against a
@@ -593,3 +593,21 @@ def test_xla_declarations_match_jaxlib_header(tmp_path: Path) -> None:
         [compiler, "-fsyntax-only", "-std=gnu11", *includes, str(source)], capture_output=True, text=True
     )
     assert result.returncode == 0, result.stderr
+
+
+@pytest.mark.parametrize(
+    ("f64", "terms"),
+    [(2, (3, 3, 3)), (0, (2, 3, 3)), (1, (3, 17, 3)), (0, (16, 16, 17))],
+    ids=["dtype", "too-few-terms", "too-many-terms", "past-the-table"],
+)
+def test_xla_tables_refuse_what_the_kernels_cannot_read(f64: int, terms: tuple[int, int, int]) -> None:
+    """The XLA handlers read their series tables from what diffquat/jax/_xla.py hands over at import;
+    a table that the kernels cannot read (a dtype other than float32 and float64, fewer than the 3
+    coefficients they differentiate, more than the 16 each series holds) is refused before anything
+    is copied, so the handlers keep reading the tables set at import."""
+    from diffquat import _kernels
+
+    series = np.zeros(1 + sum(terms))
+    table = np.zeros(7)
+    with pytest.raises(ValueError, match="xla_set_tables"):
+        _kernels.xla_set_tables(f64, series.ctypes.data, len(series), *terms, table.ctypes.data)

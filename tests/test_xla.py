@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from cases import CASES_BY_NAME, JAX_KERNELS, OPS, Op
 
 import diffquat.jax as dq
 
@@ -49,34 +50,51 @@ def test_matrix_to_quaternion_cotangent_is_one_stack(scalar_first: bool) -> None
     assert not re.findall(r" pad\(", hlo)
 
 
-@pytest.mark.parametrize("scalar_first", [True, False], ids=["wxyz", "xyzw"])
-def test_matrix_to_quaternion_calls_the_kernels_on_the_cpu(scalar_first: bool) -> None:
-    """With ``cpu_kernels`` on, matrix_to_quaternion on the CPU is the C kernels as custom calls
+# The rows whose whole map is one kernel (cases.JAX_KERNELS; matrix_to_axis_angle and so3_log call
+# one for their quaternion step only: below), in each storage order they take.
+WHOLE = [
+    (op, first)
+    for op in OPS
+    if op.id in JAX_KERNELS and op.name not in ("matrix_to_axis_angle", "so3_log")
+    for first in ((True, False) if op.scalar_first else (True,))
+]
+
+
+@pytest.mark.parametrize(
+    ("op", "scalar_first"), WHOLE, ids=[f"{op.id}-{'wxyz' if f else 'xyzw'}" for op, f in WHOLE]
+)
+def test_the_kernels_are_the_whole_cpu_program(op: Op, scalar_first: bool) -> None:
+    """With ``cpu_kernels`` on, these functions on the CPU are the C kernels as custom calls
     (``diffquat/jax/_xla.py``): the forward program is the forward kernel alone, and the reverse
-    program the forward kernel for the result and the backward kernel for the cotangent, with nothing
-    of the formula (no square root) compiled beside them; the vmap of a gradient still calls them."""
+    program calls the backward kernel (and the forward one where the cotangent reads the result),
+    with nothing of the formula (no square root, no sine) compiled beside them; the vmap of a gradient
+    still calls them. The storage order and the side are in the kernels' names."""
     if dq._xla is None:
         pytest.skip("the C extension is not built (no C compiler at install)")
-    order = "wxyz" if scalar_first else "xyzw"
-    m = jnp.ones((1024, 3, 3), jnp.float32)
+    forward = "diffquat_" + JAX_KERNELS[op.id].replace("wxyz", "wxyz" if scalar_first else "xyzw")
+    backward = forward.replace("_forward_", "_backward_")
+    xs = [jnp.asarray(x, jnp.float32) for x in op.inputs(CASES_BY_NAME["random"].quaternions("float64"))]
+    keyword = {"scalar_first": scalar_first} if op.scalar_first else {}
 
-    def f(x: Any) -> Any:
-        return dq.matrix_to_quaternion(x, scalar_first=scalar_first)
+    def f(*args: Any) -> Any:
+        return op(dq, *args, **keyword)
 
-    def loss(x: Any) -> Any:
-        return (f(x) * jnp.arange(4.0, dtype=jnp.float32)[None]).sum()
+    def loss(*args: Any) -> Any:
+        out = f(*args)
+        return (out * jnp.linspace(0.5, 1.5, out.size, dtype=out.dtype).reshape(out.shape)).sum()
 
-    def calls(fn: Callable[..., Any], *args: Any) -> list[str]:
+    def calls(fn: Callable[..., Any], *args: Any) -> set[str]:
         text = jax.jit(fn).lower(*args).compile().as_text()
         assert text is not None
-        assert "sqrt(" not in text
-        return sorted(re.findall(r'custom_call_target="([^"]+)"', text))
+        assert "sqrt(" not in text and "sine(" not in text
+        return set(re.findall(r'custom_call_target="([^"]+)"', text))
 
+    argnums = tuple(range(len(xs)))
     with dq.cpu_kernels():
-        assert calls(f, m) == [f"diffquat_m2q_forward_{order}"]
-        backward = [f"diffquat_m2q_backward_{order}", f"diffquat_m2q_forward_{order}"]
-        assert calls(jax.grad(loss), m) == backward
-        assert calls(jax.vmap(jax.grad(loss)), m.reshape(4, 256, 3, 3)) == backward
+        assert calls(f, *xs) == {forward}
+        assert backward in calls(jax.grad(loss, argnums), *xs) <= {forward, backward}
+        pairs = [x.reshape(8, -1, *x.shape[1:]) for x in xs]
+        assert backward in calls(jax.vmap(jax.grad(loss, argnums)), *pairs) <= {forward, backward}
 
 
 def test_kernel_primitives_lower_other_dtypes_as_the_formula() -> None:

@@ -4,8 +4,9 @@ conventions are on the documentation's Conventions page. Every function is trace
 and exports with ``jax.export`` (the exported program is plain StableHLO: it runs where diffquat is
 not installed).
 
-One switch of its own, ``cpu_kernels`` (off by default): ``matrix_to_quaternion`` and
-``matrix_to_axis_angle`` on the CPU through diffquat's C kernels, called as XLA custom calls."""
+One switch of its own, ``cpu_kernels`` (off by default): ``matrix_to_quaternion``,
+``matrix_to_axis_angle`` and ``so3_log``, the four SO(3) Jacobians and ``quaternion_plus`` on the CPU
+through diffquat's C kernels, called as XLA custom calls."""
 
 from __future__ import annotations
 
@@ -217,16 +218,19 @@ class _Restore:
 
 
 def cpu_kernels(enabled: bool = True) -> _Restore:
-    """Turn the C kernels of ``matrix_to_quaternion`` and ``matrix_to_axis_angle`` on the CPU on or off
-    (off by default): ``cpu_kernels(True)`` for the rest of the process, or for a block::
+    """Turn the C kernels on the CPU on or off (off by default): ``cpu_kernels(True)`` for the rest of
+    the process, or for a block::
 
         with diffquat.jax.cpu_kernels():          # or cpu_kernels(True) / cpu_kernels(False)
             q = jax.jit(diffquat.jax.matrix_to_quaternion)(matrices)   # (..., 3, 3) -> (..., 4)
 
-    On, ``matrix_to_quaternion`` (forward and reverse mode) and the quaternion step of
-    ``matrix_to_axis_angle`` call diffquat's C kernels (``diffquat/_kernels.c``) as XLA custom calls
-    wherever ``jit`` lowers for the CPU: one pass over memory each way, 1.4-2.4x faster than XLA's
-    loops for the formula (benchmarks/). The values are the formula's (the same selection, to a few
+    On, ``matrix_to_quaternion``, the four SO(3) Jacobians (``so3_left_jacobian``,
+    ``so3_right_jacobian`` and their inverses) and ``quaternion_plus`` (forward and reverse mode), and
+    the quaternion step of ``matrix_to_axis_angle`` and ``so3_log``, call diffquat's C kernels
+    (``diffquat/_kernels.c``, the torch backend's) as XLA custom calls wherever ``jit`` lowers for the
+    CPU: one pass over memory each way, where XLA runs the formula as 7 to 21 small loops (and, from
+    some 16 rotations on, on its thread pool): 1.2-5.8x faster at N = 64, 1.1-4.5x at N = 4096
+    (benchmarks/LIE.md and RESULTS.md). The values are the formula's (the same operations, to a few
     ulps); other platforms, and dtypes other than float32 and float64, keep the formula. Off, every
     platform runs the formula, and every compiled program is plain StableHLO.
 
@@ -476,24 +480,56 @@ def so3_hat(omega: ArrayLike) -> Array:
     return _B(_lie.so3_hat, omega)
 
 
+def _kernels_or(core_fn: Callable[..., Array], kernel: Callable[..., Array]) -> Callable[..., Any]:
+    """The Backend's ``choose`` for a function with C kernels (_xla.py): ``core_fn`` while
+    :func:`cpu_kernels` is off (the default); while it is on, ``kernel(*arrays, **options)`` where
+    ``jit`` lowers for the CPU and ``core_fn`` on other platforms (the branch not chosen is not
+    lowered). The kernels have the core's non-finite rows (the torch binding's tests)."""
+
+    def on_the_cpu(xp: Any, *arrays: Array, **options: Any) -> Array:
+        return jax.lax.platform_dependent(
+            *arrays,
+            cpu=lambda *xs: kernel(*xs, **options),
+            default=lambda *xs: core_fn(xp, *xs, **options),
+        )
+
+    def choose(*arrays: Array) -> Callable[..., Array]:
+        return on_the_cpu if _kernels_on() else core_fn
+
+    return choose
+
+
+# The Jacobians and quaternion_plus take the kernels on the CPU while cpu_kernels is on: side by side
+# with the formula (benchmarks/LIE.md) one custom call each way, where XLA's programs for the formula
+# have 7 to 21 kernels; below N ~ 16 rotations those run inline, above they go to XLA's thread pool,
+# and a custom call, which XLA's cost model counts as no work, keeps the whole call inline.
+def _jacobian_choice(kind: str) -> Callable[..., Any]:
+    return _kernels_or(_xla.JACOBIANS[kind], lambda omega: _xla.jacobian(omega, kind))
+
+
+# by the kinds of _xla.JACOBIANS; empty, and None, (the formula) where the extension was not built
+_JACOBIAN_CHOICE = {kind: _jacobian_choice(kind) for kind in _xla.JACOBIANS} if _xla is not None else {}
+_QPLUS_CHOICE = _kernels_or(_lie.quaternion_plus, _xla.quaternion_plus) if _xla is not None else None
+
+
 @documented(_lie.so3_left_jacobian)
 def so3_left_jacobian(omega: ArrayLike) -> Array:
-    return _B(_lie.so3_left_jacobian, omega)
+    return _B(_lie.so3_left_jacobian, omega, choose=_JACOBIAN_CHOICE.get("jl"))
 
 
 @documented(_lie.so3_right_jacobian)
 def so3_right_jacobian(omega: ArrayLike) -> Array:
-    return _B(_lie.so3_right_jacobian, omega)
+    return _B(_lie.so3_right_jacobian, omega, choose=_JACOBIAN_CHOICE.get("jr"))
 
 
 @documented(_lie.so3_left_jacobian_inverse)
 def so3_left_jacobian_inverse(omega: ArrayLike) -> Array:
-    return _B(_lie.so3_left_jacobian_inverse, omega)
+    return _B(_lie.so3_left_jacobian_inverse, omega, choose=_JACOBIAN_CHOICE.get("jl_inv"))
 
 
 @documented(_lie.so3_right_jacobian_inverse)
 def so3_right_jacobian_inverse(omega: ArrayLike) -> Array:
-    return _B(_lie.so3_right_jacobian_inverse, omega)
+    return _B(_lie.so3_right_jacobian_inverse, omega, choose=_JACOBIAN_CHOICE.get("jr_inv"))
 
 
 @documented(_lie.so3_vee)
@@ -525,7 +561,7 @@ def so3_minus(matrix1: ArrayLike, matrix2: ArrayLike, *, side: Side = "right") -
 def quaternion_plus(
     q: ArrayLike, delta: ArrayLike, *, side: Side = "right", scalar_first: bool = True
 ) -> Array:
-    return _B(_lie.quaternion_plus, q, delta, side=side, scalar_first=scalar_first)
+    return _B(_lie.quaternion_plus, q, delta, side=side, scalar_first=scalar_first, choose=_QPLUS_CHOICE)
 
 
 @documented(_lie.quaternion_minus)

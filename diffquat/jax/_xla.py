@@ -1,8 +1,12 @@
-"""``matrix_to_quaternion`` on the CPU through the C kernels of ``diffquat/_kernels.c``, called from
-XLA programs (jax's FFI): one pass over memory forward and one backward, where XLA's own loops for
-the formula run at 13% of the copy bound forward and its reverse mode takes several passes.
+"""``matrix_to_quaternion``, the SO(3) Jacobians and ``quaternion_plus`` on the CPU through the C
+kernels of ``diffquat/_kernels.c``, called from XLA programs (jax's FFI): one pass over memory forward
+and one backward, where XLA's own loops for the formula run at 13% of the copy bound forward
+(``matrix_to_quaternion``) and its reverse mode takes several passes. At small N the gain is XLA's
+dispatch: the formula's programs have 7 to 21 kernels, which from some 16 rotations on XLA's CPU
+client runs on its thread pool (its cost model estimates 1000 floating-point operations or more),
+where one custom call, to which the cost model assigns none, runs inline.
 
-Three primitives, each over any leading batch dimensions:
+Each map has three primitives over any leading batch dimensions; for ``matrix_to_quaternion``:
 
 - ``m2q(matrix) -> q``: the forward kernel.
 - ``m2q_tangent(matrix, q, dm) -> dq``, linear in ``dm``: the core's forward-mode formula
@@ -14,7 +18,10 @@ Three primitives, each over any leading batch dimensions:
 So ``jvp`` is the kernel and the core tangent, and ``vjp``/``grad`` the two kernels. The tangent and
 the cotangent differentiate in all their arguments as the core formulas that they evaluate, so every
 higher order (``hessian``, ``check_grads`` at order 2) works through XLA's derivatives of those.
-``vmap`` moves the batch axis to the front (the kernels loop over leading dimensions).
+``vmap`` moves the batch axis to the front (the kernels loop over leading dimensions). The Jacobians
+(``jac``, ``jac_tangent``, ``jac_cotangent``, the kind a parameter) and ``quaternion_plus``
+(``qplus``, ``qplus_tangent``, ``qplus_cotangent``, which returns the cotangents of both arguments)
+follow the same pattern, their tangents being jax's forward mode of the core formulas.
 
 The kernels take float32 and float64 (the backend computes half precision in float32 before). Only
 the CPU lowering calls them; every other platform lowers the core formulas, and
@@ -40,13 +47,14 @@ from collections.abc import Callable
 from typing import Any, cast
 
 import jax
+import numpy as np
 from jax import Array
 from jax.core import ShapedArray
 from jax.extend.core import Primitive
 from jax.interpreters import ad, batching, mlir
 from jax.sharding import PartitionSpec
 
-from .. import _core, _kernels
+from .. import _algebra, _core, _kernels, _lie
 from ._namespace import XP
 
 _ORDER = {True: "wxyz", False: "xyzw"}
@@ -57,9 +65,9 @@ _undefined: Callable[[Any], bool] = ad.is_undefined_primal
 _spec: Callable[..., PartitionSpec] = PartitionSpec
 
 
-def _bind(prim: Primitive, *args: Any, scalar_first: bool) -> Array:
-    bind: Callable[..., Array] = prim.bind
-    return bind(*args, scalar_first=scalar_first)
+def _bind(prim: Primitive, *args: Any, **params: Any) -> Any:
+    bind: Callable[..., Any] = prim.bind
+    return bind(*args, **params)
 
 
 def _register_targets() -> None:
@@ -76,10 +84,14 @@ def _register_targets() -> None:
 _register_targets()
 
 
-def _primitive(name: str, abstract: Callable[..., ShapedArray], formula: Callable[..., Array]) -> Primitive:
+def _primitive(
+    name: str, abstract: Callable[..., Any], formula: Callable[..., Any], multiple_results: bool = False
+) -> Primitive:
     """A primitive evaluated eagerly by ``jit`` of itself, lowered as ``formula`` (the core) on every
-    platform; the CPU lowering of a kernel is registered beside it."""
+    platform; the CPU lowering of a kernel is registered beside it. ``multiple_results``: ``abstract``
+    and ``formula`` return a list (quaternion_plus's cotangent in both arguments)."""
     prim: Any = Primitive(f"diffquat_{name}")  # untyped in jax
+    prim.multiple_results = multiple_results
 
     @functools.cache
     def compiled(**params: Any) -> Callable[..., Array]:
@@ -87,7 +99,7 @@ def _primitive(name: str, abstract: Callable[..., ShapedArray], formula: Callabl
 
     prim.def_impl(lambda *args, **params: compiled(**params)(*args))
     prim.def_abstract_eval(abstract)
-    mlir.register_lowering(prim, mlir.lower_fun(formula, multiple_results=False))
+    mlir.register_lowering(prim, mlir.lower_fun(formula, multiple_results=multiple_results))
     batching.primitive_batchers[prim] = functools.partial(_batched, prim)
     return cast(Primitive, prim)
 
@@ -99,21 +111,23 @@ def _batched(prim: Primitive, args: tuple[Array, ...], dims: tuple[int | None, .
         jax.numpy.broadcast_to(arg, (size, *arg.shape)) if dim is None else jax.numpy.moveaxis(arg, dim, 0)
         for arg, dim in zip(args, dims, strict=True)
     ]
-    return _bind(prim, *moved, **params), 0
+    out = _bind(prim, *moved, **params)
+    return out, [0] * len(out) if prim.multiple_results else 0
 
 
-def _batch_partitioning(ctx: Any) -> dict[str, Any]:
+def _batch_partitioning(ctx: Any, core: int) -> dict[str, Any]:
     """The attributes that let XLA's SPMD partitioners split a kernel's custom call along the leading
-    batch dimensions that all its operands and its result share (those of the matrix, its first
-    operand). GSPMD reads the number of batch dimensions of a target registered as batch partitionable
+    batch dimensions that all its operands and its results share (those of its first operand, which
+    has ``core`` more: the matrix's two, the quaternion's or the rotation vector's one). GSPMD reads
+    the number of batch dimensions of a target registered as batch partitionable
     (``_register_targets``); Shardy, jax's default partitioner, reads a sharding rule: one factor per
-    batch dimension, shared by every operand and the result, and one per other dimension, each its
+    batch dimension, shared by every operand and every result, and one per other dimension, each its
     own (never split). Without them, ``jit`` over a batch-sharded array gathers the whole batch on
     every device and runs the kernel on all of it there (``shard_map`` needs neither: each device
     lowers its own shard)."""
     if not all(isinstance(n, int) for aval in (*ctx.avals_in, *ctx.avals_out) for n in aval.shape):
         return {}  # symbolic sizes (shape polymorphism): no rule to state, XLA keeps the call whole
-    batch = ctx.avals_in[0].ndim - 2
+    batch = ctx.avals_in[0].ndim - core
     attributes: dict[str, Any] = {
         "mhlo.frontend_attributes": mlir.ir_attribute({"num_batch_dims": str(batch)})
     }
@@ -144,19 +158,23 @@ def _for_export(ctx: Any) -> bool:
     return bool(getattr(params, "for_export", False))
 
 
-def _kernel_lowering(prim: Primitive, kernel: str, formula: Callable[..., Array]) -> None:
-    """The CPU lowering of ``prim``: a custom call of the handler for its storage order, for the
-    dtypes the kernels have (the handlers read float64 or else float32); any other dtype is
-    ``formula``, and so is a program lowered for ``jax.export`` (the artefact must run without
-    diffquat's handlers, and jax.export refuses custom calls that are not jax's own)."""
-    fallback = mlir.lower_fun(formula, multiple_results=False)
+def _kernel_lowering(
+    prim: Primitive, target: Callable[..., str], formula: Callable[..., Any], core: int
+) -> None:
+    """The CPU lowering of ``prim``: a custom call of the handler ``target(**params)`` (the storage
+    order, the side, the Jacobian are in the handler's name: the handlers take no attributes), for
+    operands of one of the dtypes the kernels have (the handlers read float64 or else float32); any
+    other dtype is ``formula``, and so is a program lowered for ``jax.export`` (the artefact must run
+    without diffquat's handlers, and jax.export refuses custom calls that are not jax's own). ``core``:
+    the trailing dimensions of the first operand beyond the batch."""
+    fallback = mlir.lower_fun(formula, multiple_results=prim.multiple_results)
 
-    def lower(ctx: Any, *args: Any, scalar_first: bool) -> Any:
-        if ctx.avals_in[0].dtype not in (jax.numpy.float32, jax.numpy.float64) or _for_export(ctx):
-            return fallback(ctx, *args, scalar_first=scalar_first)
-        # The order is in the target's name: the handlers take no attributes.
+    def lower(ctx: Any, *args: Any, **params: Any) -> Any:
+        dtypes = {aval.dtype for aval in ctx.avals_in}
+        if len(dtypes) != 1 or dtypes.pop() not in (jax.numpy.float32, jax.numpy.float64) or _for_export(ctx):
+            return fallback(ctx, *args, **params)
         rule = jax.ffi.ffi_lowering(
-            f"diffquat_{kernel}_{_ORDER[scalar_first]}", extra_attributes=_batch_partitioning(ctx)
+            f"diffquat_{target(**params)}", extra_attributes=_batch_partitioning(ctx, core)
         )
         return rule(ctx, *args)
 
@@ -207,8 +225,10 @@ m2q_cotangent_p = _primitive(
     lambda matrix, q, g, *, scalar_first: _result_type(matrix, 2, (3, 3), q, g),
     _cotangent_formula,
 )
-_kernel_lowering(m2q_p, "m2q_forward", _forward_formula)
-_kernel_lowering(m2q_cotangent_p, "m2q_backward", _cotangent_formula)
+_kernel_lowering(m2q_p, lambda scalar_first: f"m2q_forward_{_ORDER[scalar_first]}", _forward_formula, 2)
+_kernel_lowering(
+    m2q_cotangent_p, lambda scalar_first: f"m2q_backward_{_ORDER[scalar_first]}", _cotangent_formula, 2
+)
 
 
 def _m2q_jvp(primals: tuple[Array], tangents: tuple[Any], *, scalar_first: bool) -> tuple[Array, Array]:
@@ -217,15 +237,13 @@ def _m2q_jvp(primals: tuple[Array], tangents: tuple[Any], *, scalar_first: bool)
     return q, _bind(m2q_tangent_p, matrix, q, _instantiate(dm), scalar_first=scalar_first)
 
 
-def _formula_jvp(formula: Callable[..., Array]) -> Callable[..., tuple[Array, Array]]:
+def _formula_jvp(formula: Callable[..., Any]) -> Callable[..., tuple[Any, Any]]:
     """The JVP of a tangent or cotangent primitive in all its arguments: that of the core formula it
     evaluates, differentiated by jax (second and higher orders only)."""
 
-    def jvp(
-        primals: tuple[Array, ...], tangents: tuple[Any, ...], *, scalar_first: bool
-    ) -> tuple[Array, Array]:
-        fn = functools.partial(formula, scalar_first=scalar_first)
-        out: tuple[Array, Array] = jax.jvp(fn, primals, tuple(_instantiate(t) for t in tangents))
+    def jvp(primals: tuple[Array, ...], tangents: tuple[Any, ...], **params: Any) -> tuple[Any, Any]:
+        fn = functools.partial(formula, **params)
+        out: tuple[Any, Any] = jax.jvp(fn, primals, tuple(_instantiate(t) for t in tangents))
         return out
 
     return jvp
@@ -254,3 +272,174 @@ ad.primitive_transposes[m2q_cotangent_p] = _transpose(m2q_tangent_p)
 def matrix_to_quaternion(matrix: Array, scalar_first: bool) -> Array:
     """:func:`diffquat._core.matrix_to_quaternion` of a float32 or float64 ``(..., 3, 3)`` array."""
     return _bind(m2q_p, matrix, scalar_first=bool(scalar_first))
+
+
+# ---------------------------------------------------------------------------------------------------
+# The SO(3) Jacobians and quaternion_plus: the kernels of the torch binding (_kernels.c), the same
+# arrangement as above. Each map has three primitives: the forward kernel; its tangent, the forward
+# mode of the core formula (jax.jvp of it, which XLA compiles); its cotangent, the backward kernel,
+# whose formula is jax.vjp of the core. Tangent and cotangent are each other's transpose.
+
+
+def _set_tables() -> None:
+    """Hand the kernels the tables that the torch binding passes with each call: the Jacobians'
+    series (:func:`diffquat._lie.series_table`) and ``exp_factors``' threshold and series
+    (:func:`diffquat._algebra.exp_series_table`), for float32 and float64 (copied by the C side)."""
+    for f64, dtype in ((0, np.float32), (1, np.float64)):
+        flat, terms = _lie.series_table(float(np.finfo(dtype).eps))
+        series = np.asarray(flat, np.float64)
+        exp = np.asarray(_algebra.exp_series_table(np, dtype), np.float64)
+        _kernels.xla_set_tables(f64, series.ctypes.data, len(series), *terms, exp.ctypes.data)
+
+
+_set_tables()
+
+# The Jacobian of each kind (the kernels' Args.first: 0 J_l, 1 J_r, 2 J_l^-1, 3 J_r^-1), by the
+# name of its handlers.
+JACOBIANS: dict[str, Callable[[Any, Array], Array]] = {
+    "jl": _lie.so3_left_jacobian,
+    "jr": _lie.so3_right_jacobian,
+    "jl_inv": _lie.so3_left_jacobian_inverse,
+    "jr_inv": _lie.so3_right_jacobian_inverse,
+}
+
+
+def _jac_formula(omega: Array, *, kind: str) -> Array:
+    return JACOBIANS[kind](XP, omega)
+
+
+def _jac_tangent_formula(omega: Array, domega: Array, *, kind: str) -> Array:
+    tangent: Array = jax.jvp(functools.partial(_jac_formula, kind=kind), (omega,), (domega,))[1]
+    return tangent
+
+
+def _jac_cotangent_formula(omega: Array, g: Array, *, kind: str) -> Array:
+    _, pullback = jax.vjp(functools.partial(_jac_formula, kind=kind), omega)
+    cotangent: Array = pullback(g)[0]
+    return cotangent
+
+
+jac_p = _primitive("jac", lambda omega, *, kind: _result_type(omega, 1, (3, 3)), _jac_formula)
+jac_tangent_p = _primitive(
+    "jac_tangent", lambda omega, domega, *, kind: _result_type(omega, 1, (3, 3), domega), _jac_tangent_formula
+)
+jac_cotangent_p = _primitive(
+    "jac_cotangent", lambda omega, g, *, kind: _result_type(omega, 1, (3,), g), _jac_cotangent_formula
+)
+_kernel_lowering(jac_p, lambda kind: f"jac_forward_{kind}", _jac_formula, 1)
+_kernel_lowering(jac_cotangent_p, lambda kind: f"jac_backward_{kind}", _jac_cotangent_formula, 1)
+
+
+def _jac_jvp(primals: tuple[Array], tangents: tuple[Any], *, kind: str) -> tuple[Array, Array]:
+    (omega,), (domega,) = primals, tangents
+    return _bind(jac_p, omega, kind=kind), _bind(jac_tangent_p, omega, _instantiate(domega), kind=kind)
+
+
+def _linear_in_last(to: Primitive) -> Callable[..., list[Any]]:
+    """Transpose of a Jacobian's tangent or cotangent primitive in its linear (last) argument: the
+    other one, at the same rotation vector."""
+
+    def transpose(ct: Any, omega: Any, linear: Any, *, kind: str) -> list[Any]:
+        assert not _undefined(omega)
+        if type(ct) is ad.Zero:
+            return [None, ad.Zero(linear.aval)]
+        return [None, _bind(to, omega, ct, kind=kind)]
+
+    return transpose
+
+
+ad.primitive_jvps[jac_p] = _jac_jvp
+ad.primitive_jvps[jac_tangent_p] = _formula_jvp(_jac_tangent_formula)
+ad.primitive_jvps[jac_cotangent_p] = _formula_jvp(_jac_cotangent_formula)
+ad.primitive_transposes[jac_tangent_p] = _linear_in_last(jac_cotangent_p)
+ad.primitive_transposes[jac_cotangent_p] = _linear_in_last(jac_tangent_p)
+
+
+def jacobian(omega: Array, kind: str) -> Array:
+    """The Jacobian ``kind`` (a key of :data:`JACOBIANS`) of a float32 or float64 ``(..., 3)`` array."""
+    return cast(Array, _bind(jac_p, omega, kind=kind))
+
+
+def _qplus_formula(q: Array, d: Array, *, scalar_first: bool, right: bool) -> Array:
+    side = "right" if right else "left"
+    return _lie.quaternion_plus(XP, q, d, side=side, scalar_first=scalar_first)
+
+
+def _qplus_tangent_formula(
+    q: Array, d: Array, dq: Array, dd: Array, *, scalar_first: bool, right: bool
+) -> Array:
+    fn = functools.partial(_qplus_formula, scalar_first=scalar_first, right=right)
+    tangent: Array = jax.jvp(fn, (q, d), (dq, dd))[1]
+    return tangent
+
+
+def _qplus_cotangent_formula(q: Array, d: Array, g: Array, *, scalar_first: bool, right: bool) -> list[Array]:
+    _, pullback = jax.vjp(functools.partial(_qplus_formula, scalar_first=scalar_first, right=right), q, d)
+    return list(pullback(g))
+
+
+def _qplus_target(kind: str) -> Callable[..., str]:
+    return lambda scalar_first, right: f"qplus_{kind}_{_ORDER[scalar_first]}_{'right' if right else 'left'}"
+
+
+qplus_p = _primitive(
+    "qplus", lambda q, d, *, scalar_first, right: _result_type(q, 1, (4,), d), _qplus_formula
+)
+qplus_tangent_p = _primitive(
+    "qplus_tangent",
+    lambda q, d, dq, dd, *, scalar_first, right: _result_type(q, 1, (4,), d, dq, dd),
+    _qplus_tangent_formula,
+)
+qplus_cotangent_p = _primitive(
+    "qplus_cotangent",
+    lambda q, d, g, *, scalar_first, right: [_result_type(q, 1, (4,), d, g), _result_type(d, 1, (3,), q, g)],
+    _qplus_cotangent_formula,
+    multiple_results=True,
+)
+_kernel_lowering(qplus_p, _qplus_target("forward"), _qplus_formula, 1)
+_kernel_lowering(qplus_cotangent_p, _qplus_target("backward"), _qplus_cotangent_formula, 1)
+
+
+def _qplus_jvp(
+    primals: tuple[Array, Array], tangents: tuple[Any, Any], *, scalar_first: bool, right: bool
+) -> tuple[Array, Array]:
+    (q, d), (dq, dd) = primals, tangents
+    params = {"scalar_first": scalar_first, "right": right}
+    out = _bind(qplus_p, q, d, **params)
+    return out, _bind(qplus_tangent_p, q, d, _instantiate(dq), _instantiate(dd), **params)
+
+
+def _qplus_tangent_transpose(ct: Any, q: Any, d: Any, dq: Any, dd: Any, **params: Any) -> list[Any]:
+    """The tangent is linear in (dq, dd): its transpose is the cotangent, in both at once."""
+    assert not _undefined(q) and not _undefined(d)
+    if type(ct) is ad.Zero:
+        return [None, None, ad.Zero(dq.aval), ad.Zero(dd.aval)]
+    gq, gd = _bind(qplus_cotangent_p, q, d, ct, **params)
+    return [None, None, gq, gd]
+
+
+def _qplus_cotangent_transpose(cts: list[Any], q: Any, d: Any, g: Any, **params: Any) -> list[Any]:
+    """The cotangent is linear in g: its transpose is the tangent, at the cotangents of both results."""
+    assert not _undefined(q) and not _undefined(d)
+    if all(type(ct) is ad.Zero for ct in cts):
+        return [None, None, ad.Zero(g.aval)]
+    cq, cd = (_instantiate(ct) for ct in cts)
+    return [None, None, _bind(qplus_tangent_p, q, d, cq, cd, **params)]
+
+
+ad.primitive_jvps[qplus_p] = _qplus_jvp
+ad.primitive_jvps[qplus_tangent_p] = _formula_jvp(_qplus_tangent_formula)
+ad.primitive_jvps[qplus_cotangent_p] = _formula_jvp(_qplus_cotangent_formula)
+ad.primitive_transposes[qplus_tangent_p] = _qplus_tangent_transpose
+ad.primitive_transposes[qplus_cotangent_p] = _qplus_cotangent_transpose
+
+
+def quaternion_plus(q: Array, delta: Array, side: str, scalar_first: bool) -> Array:
+    """:func:`diffquat._lie.quaternion_plus` of float32 or float64 ``q`` (..., 4) and ``delta``
+    (..., 3) of one dtype. The batch shapes are broadcast first (the kernels read one row of each per
+    result row; jax sums the gradient of a broadcast input back)."""
+    right = _lie.check_side("quaternion_plus", side)
+    batch = jax.numpy.broadcast_shapes(q.shape[:-1], delta.shape[:-1])
+    q = jax.numpy.broadcast_to(q, (*batch, 4))
+    delta = jax.numpy.broadcast_to(delta, (*batch, 3))
+    return cast(Array, _bind(qplus_p, q, delta, scalar_first=bool(scalar_first), right=right))
