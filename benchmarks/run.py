@@ -44,7 +44,14 @@ import cases  # noqa: E402  (the test suite's named cases: the accuracy table ru
 
 # The jax functions that diffquat.jax.cpu_kernels changes on the CPU (tests/test_jax_deploy.py's
 # KERNEL_OPS): their jax rows are timed both ways, the default formula and the C kernels.
-JAX_KERNEL_OPS = ("matrix_to_quaternion", "matrix_to_axis_angle")
+JAX_KERNEL_OPS = (
+    "matrix_to_quaternion",
+    "matrix_to_axis_angle",
+    "so3_log",
+    "so3_left_jacobian",
+    "so3_left_jacobian_inverse",
+    "quaternion_plus",
+)
 JAX_KERNELS = "diffquat jax.jit, C kernels (cpu_kernels on)"
 
 FULL_SIZES = (1, 64, 4096, 262144, 4194304)
@@ -383,7 +390,9 @@ def build_ops(quick: bool, dynamic: bool | None = None) -> list[OpSpec]:
                 skipped.append(f"{JAX_KERNELS} (the C extension is not built)")
             else:
                 methods.append(
-                    Method(JAX_KERNELS, "jax", jax.jit(with_kernels(getattr(dqj, name))), compiled=True)
+                    Method(
+                        JAX_KERNELS, "jax", jax.jit(with_kernels(adapt(getattr(dqj, name)))), compiled=True
+                    )
                 )
         methods.append(Method("diffquat numpy", "numpy", adapt(getattr(dqn, name))))
         for label, build in peers.items():
