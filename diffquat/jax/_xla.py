@@ -251,13 +251,14 @@ def _formula_jvp(formula: Callable[..., Any]) -> Callable[..., tuple[Any, Any]]:
 
 def _transpose(to: Primitive) -> Callable[..., list[Any]]:
     """Transpose of a tangent or cotangent primitive in its linear (last) argument: the other one,
-    at the same matrix and result."""
+    at the same other arguments (the matrix and its quaternion; the rotation vector)."""
 
-    def transpose(ct: Any, matrix: Any, q: Any, linear: Any, *, scalar_first: bool) -> list[Any]:
-        assert not _undefined(matrix) and not _undefined(q)
+    def transpose(ct: Any, *args: Any, **params: Any) -> list[Any]:
+        *fixed, linear = args
+        assert not any(_undefined(arg) for arg in fixed)
         if type(ct) is ad.Zero:
-            return [None, None, ad.Zero(linear.aval)]
-        return [None, None, _bind(to, matrix, q, ct, scalar_first=scalar_first)]
+            return [*(None for _ in fixed), ad.Zero(linear.aval)]
+        return [*(None for _ in fixed), _bind(to, *fixed, ct, **params)]
 
     return transpose
 
@@ -335,24 +336,11 @@ def _jac_jvp(primals: tuple[Array], tangents: tuple[Any], *, kind: str) -> tuple
     return _bind(jac_p, omega, kind=kind), _bind(jac_tangent_p, omega, _instantiate(domega), kind=kind)
 
 
-def _linear_in_last(to: Primitive) -> Callable[..., list[Any]]:
-    """Transpose of a Jacobian's tangent or cotangent primitive in its linear (last) argument: the
-    other one, at the same rotation vector."""
-
-    def transpose(ct: Any, omega: Any, linear: Any, *, kind: str) -> list[Any]:
-        assert not _undefined(omega)
-        if type(ct) is ad.Zero:
-            return [None, ad.Zero(linear.aval)]
-        return [None, _bind(to, omega, ct, kind=kind)]
-
-    return transpose
-
-
 ad.primitive_jvps[jac_p] = _jac_jvp
 ad.primitive_jvps[jac_tangent_p] = _formula_jvp(_jac_tangent_formula)
 ad.primitive_jvps[jac_cotangent_p] = _formula_jvp(_jac_cotangent_formula)
-ad.primitive_transposes[jac_tangent_p] = _linear_in_last(jac_cotangent_p)
-ad.primitive_transposes[jac_cotangent_p] = _linear_in_last(jac_tangent_p)
+ad.primitive_transposes[jac_tangent_p] = _transpose(jac_cotangent_p)
+ad.primitive_transposes[jac_cotangent_p] = _transpose(jac_tangent_p)
 
 
 def jacobian(omega: Array, kind: str) -> Array:
