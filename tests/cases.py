@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import functools
 import warnings
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import ml_dtypes
@@ -1359,10 +1359,53 @@ OPS += [
 
 OPS_BY_NAME = {op.id: op for op in OPS}
 
+
 # The rows whose CPU program ``diffquat.jax.cpu_kernels`` changes, and the C kernel (XLA custom-call
 # target, less its "diffquat_" prefix) their forward program then calls: the quaternion step of
 # matrix_to_axis_angle and of so3_log is matrix_to_quaternion's. test_jax_deploy.py checks every row
-# against this table; test_grads.py compares the kernels' values and derivatives with the formula's.
+# against this table; test_grads.py compares the kernels' values and derivatives with the formula's,
+# and test_xla.py reads their programs, on both sides of quaternion_plus (both_sides).
+def table_error(
+    op: Op, received: Sequence[np.ndarray], actual: np.ndarray, expected: np.ndarray | None = None
+) -> float:
+    """Max abs error of ``actual`` (float64), what ``op`` gave for the float64 values ``received``,
+    against ``expected`` (by default the oracle on ``received``), measured as the table measures it:
+    angles modulo 2 pi (``periodic``), relative to the largest expected entry (``relative``) or to the
+    size the op declares (``error_scale``), up to the sign where the sign is rounding's choice
+    (``up_to_sign``)."""
+    if expected is None:
+        expected = op.expected(*received)
+    actual = np.asarray(actual, np.float64)
+    assert actual.shape == expected.shape
+    if actual.size == 0:
+        return 0.0
+    if op.periodic:  # angles: pi and -pi are one angle
+        actual = expected + (np.mod(actual - expected + np.pi, 2 * np.pi) - np.pi)
+    if op.relative:  # per element, relative to the largest expected entry
+        scale = np.abs(expected).max(axis=-1, keepdims=True)
+        scale = np.where(scale > 0, scale, 1.0)
+        actual, expected = actual / scale, expected / scale
+    if op.error_scale is not None:  # per element, relative to the size the op declares
+        scale = op.error_scale(*received)
+        scale = np.reshape(scale, scale.shape + (1,) * (expected.ndim - scale.ndim))
+        actual, expected = actual / scale, expected / scale
+    error = np.abs(actual - expected).max(axis=-1)
+    if op.up_to_sign:
+        error = np.minimum(error, np.abs(actual + expected).max(axis=-1))
+    return float(error.max())
+
+
+def both_sides(op: Op) -> list[Op]:
+    """``op`` and, for a row of a function with a ``side`` keyword, the same row on the other side
+    (where a test compares two evaluations of one function, not the row's oracle, which is one
+    side's)."""
+    side = op.kwargs.get("side")
+    if side is None:
+        return [op]
+    other = "right" if side == "left" else "left"
+    return [op, replace(op, kwargs={**op.kwargs, "side": other}, label=op.id.replace(side, other))]
+
+
 JAX_KERNELS = {
     "matrix_to_quaternion": "m2q_forward_wxyz",
     "matrix_to_axis_angle": "m2q_forward_wxyz",
@@ -1372,6 +1415,7 @@ JAX_KERNELS = {
     "so3_left_jacobian_inverse": "jac_forward_jl_inv",
     "so3_right_jacobian_inverse": "jac_forward_jr_inv",
     "quaternion_plus[left]": "qplus_forward_wxyz_left",
+    "quaternion_plus[right]": "qplus_forward_wxyz_right",  # both_sides' variant of the row
 }
 
 # Public names that are not rows of the table, with the test that covers each.

@@ -18,9 +18,11 @@ from cases import (
     GRAD_DTYPE,
     JAX_KERNELS,
     OPS,
+    VALUE_TOL,
     Case,
     Op,
     base_rows,
+    both_sides,
     edge_cases,
     gradients,
     jax_only,
@@ -28,6 +30,7 @@ from cases import (
     oracle_quaternion_to_matrix,
     outer,
     smooth,
+    table_error,
     torch_only,
 )
 from conftest import BACKENDS, Backend, rows_by_case
@@ -334,9 +337,10 @@ def test_jax_matrix_to_quaternion_value_under_differentiation(scalar_first: bool
 
 # The rows of jax functions with C kernels (cases.JAX_KERNELS), in each storage order they take.
 KERNEL_ROWS = [
-    (op, first)
+    (row, first)
     for op in OPS
     if op.id in JAX_KERNELS
+    for row in both_sides(op)
     for first in ((True, False) if op.scalar_first else (True,))
 ]
 
@@ -350,7 +354,8 @@ def test_jax_kernels_differentiate_as_the_formula(op: Op, scalar_first: bool) ->
     off the CPU, they are the formula. Both give the same values (non-finite rows included) and the
     same first and second derivatives, forward and reverse, under ``vmap`` too, on the table's named
     cases (half-turns, the identity, any norm, the zero quaternion among them) and on inputs off the
-    manifold (matrices off SO(3)); and ``check_grads`` passes on the kernels themselves."""
+    manifold (matrices off SO(3)); in float32 they are within the table's float32 bound of the float64
+    formula; and ``check_grads`` passes on the kernels themselves."""
     module = BACKENDS["jax"].module
     if module._xla is None:
         pytest.skip("the C extension is not built (no C compiler at install)")
@@ -397,6 +402,17 @@ def test_jax_kernels_differentiate_as_the_formula(op: Op, scalar_first: bool) ->
         by_formula = jax.jit(evaluate)()
         for a, b in zip(jax.tree.leaves(by_kernels), jax.tree.leaves(by_formula), strict=True):
             np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-12)
+    # float32 (the kernels' other instantiation, and its series tables) against the float64 formula on
+    # the very values received, measured as the table measures float32 against its oracle, on the
+    # cases as the table makes them for float32 (norms within its range)
+    single_q = np.concatenate([CASES_BY_NAME[name].quaternions("float32").reshape(-1, 4) for name in names])
+    received = [np.asarray(x, np.float32).astype(np.float64) for x in op.inputs(single_q)]
+    if not scalar_first:
+        received = [op.to_scalar_last(x) if i in op.quaternion_args else x for i, x in enumerate(received)]
+    with module.cpu_kernels():
+        single = np.asarray(jax.jit(f)(*(jnp.asarray(x, jnp.float32) for x in received)), np.float64)
+    reference = np.asarray(jax.jit(f)(*(jnp.asarray(x) for x in received)))
+    assert table_error(op, received, single, reference) <= VALUE_TOL["float32"] * op.tol_scale
     with module.cpu_kernels():
         check_grads(f, tuple(x[-16:] for x in xs), order=2, modes=("fwd", "rev"), eps=1e-6)
 

@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from cases import CASES_BY_NAME, JAX_KERNELS, OPS, OPS_BY_NAME, VALUE_TOL, Op
+from cases import CASES_BY_NAME, JAX_KERNELS, OPS, OPS_BY_NAME, VALUE_TOL, Op, table_error
 from jax.sharding import AxisType, NamedSharding
 from jax.sharding import PartitionSpec as P
 
@@ -77,29 +77,6 @@ def _reference(op_id: str, mode: str) -> np.ndarray:
     fn = function(op) if mode == "forward" else jax.jit(vjp(function(op)))
     with dq.cpu_kernels(False):
         return np.asarray(fn(*(jnp.asarray(x) for x in inputs(op, "float64"))))
-
-
-def oracle_error(op: Op, received: list[np.ndarray], actual: np.ndarray) -> float:
-    """Max abs error against the table's float64 oracle on the values the function received, measured
-    as tests/test_values.py measures it: angles modulo 2 pi, relative to the largest entry where the
-    output scales with the input, up to the sign where the op's sign is rounding's choice."""
-    expected = op.expected(*(x.astype(np.float64) for x in received))
-    actual = actual.astype(np.float64)
-    assert actual.shape == expected.shape
-    if op.periodic:
-        actual = expected + (np.mod(actual - expected + np.pi, 2 * np.pi) - np.pi)
-    if op.relative:
-        scale = np.abs(expected).max(axis=-1, keepdims=True)
-        scale = np.where(scale > 0, scale, 1.0)
-        actual, expected = actual / scale, expected / scale
-    if op.error_scale is not None:
-        scale = op.error_scale(*(x.astype(np.float64) for x in received))
-        scale = np.reshape(scale, scale.shape + (1,) * (expected.ndim - scale.ndim))
-        actual, expected = actual / scale, expected / scale
-    error = np.abs(actual - expected).max(axis=-1)
-    if op.up_to_sign:
-        error = np.minimum(error, np.abs(actual + expected).max(axis=-1))
-    return float(error.max())
 
 
 @pytest.fixture(autouse=True)
@@ -226,7 +203,10 @@ def test_exports_by_default_and_runs_without_diffquat(
     if dtype == "float64":
         close(actual, eager(op))
     else:
-        assert oracle_error(op, received, actual) <= VALUE_TOL[dtype] * op.tol_scale
+        assert (
+            table_error(op, [x.astype(np.float64) for x in received], actual)
+            <= VALUE_TOL[dtype] * op.tol_scale
+        )
 
 
 @needs_kernels
@@ -299,6 +279,36 @@ def test_the_kernels_run_on_two_devices(op: Op, transform: str, mesh: Any) -> No
             assert kernel_calls(program), "the kernels were not called"
             assert "all-gather" not in program
             close(out, eager(op, mode))
+
+
+@needs_kernels
+@pytest.mark.parametrize("transform", ["shard_map", "sharded_jit"])
+def test_quaternion_plus_of_two_mesh_types(transform: str, mesh: Any) -> None:
+    """``quaternion_plus`` of a batch-split ``q`` and a ``delta`` replicated on both devices (inside
+    ``shard_map``: one varies over the mesh axis, the other not; under ``jit``: two shardings), as
+    jax's own operations take them: with the switch on, its value and its gradient in both are the
+    formula's (the kernels' primitives take one type for both operands, so this pair takes the
+    formula)."""
+    op = OPS_BY_NAME["quaternion_plus[left]"]
+    q, delta = (jnp.asarray(x) for x in inputs(op, "float64"))
+    delta = delta[:1]  # one step for the whole batch
+    plus = function(op)
+    if transform == "shard_map":
+        plus = jax.shard_map(plus, mesh=mesh, in_specs=(P(AXIS), P()), out_specs=P(AXIS))
+
+    def fn(q: Any, d: Any) -> Any:
+        return plus(q, d), jax.grad(lambda q, d: (plus(q, d) ** 2).sum(), (0, 1))(q, d)
+
+    q_split = jax.device_put(q, NamedSharding(mesh, P(AXIS)))
+    d_whole = jax.device_put(delta, NamedSharding(mesh, P()))
+    with dq.cpu_kernels():
+        by_kernels = jax.jit(fn)(q_split, d_whole)
+    with dq.cpu_kernels(False):
+        by_formula = jax.jit(fn)(q_split, d_whole)
+    for a, b in zip(jax.tree.leaves(by_kernels), jax.tree.leaves(by_formula), strict=True):
+        close(a, b)
+    with dq.cpu_kernels(False):
+        close(by_kernels[0], function(op)(q, delta))  # and the unsplit call's
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -605,9 +605,14 @@ def test_xla_tables_refuse_what_the_kernels_cannot_read(f64: int, terms: tuple[i
     a table that the kernels cannot read (a dtype other than float32 and float64, fewer than the 3
     coefficients they differentiate, more than the 16 each series holds) is refused before anything
     is copied, so the handlers keep reading the tables set at import."""
+    import diffquat.jax
     from diffquat import _kernels
 
     series = np.zeros(1 + sum(terms))
     table = np.zeros(7)
-    with pytest.raises(ValueError, match="xla_set_tables"):
-        _kernels.xla_set_tables(f64, series.ctypes.data, len(series), *terms, table.ctypes.data)
+    try:
+        with pytest.raises(ValueError, match="xla_set_tables"):
+            _kernels.xla_set_tables(f64, series.ctypes.data, len(series), *terms, table.ctypes.data)
+    finally:  # had the zeros been taken, the rest of this process's jax kernels would read them
+        if diffquat.jax._xla is not None:
+            diffquat.jax._xla._set_tables()

@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from cases import CASES_BY_NAME, JAX_KERNELS, OPS, Op
+from cases import CASES_BY_NAME, JAX_KERNELS, OPS, Op, both_sides
 
 import diffquat.jax as dq
 
@@ -53,9 +53,10 @@ def test_matrix_to_quaternion_cotangent_is_one_stack(scalar_first: bool) -> None
 # The rows whose whole map is one kernel (cases.JAX_KERNELS; matrix_to_axis_angle and so3_log call
 # one for their quaternion step only: below), in each storage order they take.
 WHOLE = [
-    (op, first)
+    (row, first)
     for op in OPS
     if op.id in JAX_KERNELS and op.name not in ("matrix_to_axis_angle", "so3_log")
+    for row in both_sides(op)
     for first in ((True, False) if op.scalar_first else (True,))
 ]
 

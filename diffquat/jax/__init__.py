@@ -229,7 +229,7 @@ def cpu_kernels(enabled: bool = True) -> _Restore:
     the quaternion step of ``matrix_to_axis_angle`` and ``so3_log``, call diffquat's C kernels
     (``diffquat/_kernels.c``, the torch backend's) as XLA custom calls wherever ``jit`` lowers for the
     CPU: one pass over memory each way, where XLA runs the formula as 7 to 21 small loops (and, from
-    some 16 rotations on, on its thread pool): 1.2-5.8x faster at N = 64, 1.1-4.5x at N = 4096
+    some 16 rotations on, on its thread pool): 1.2-4.8x faster at N = 64, 1.0-5.3x at N = 4096
     (benchmarks/LIE.md and RESULTS.md). The values are the formula's (the same operations, to a few
     ulps); other platforms, and dtypes other than float32 and float64, keep the formula. Off, every
     platform runs the formula, and every compiled program is plain StableHLO.

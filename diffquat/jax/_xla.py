@@ -81,6 +81,19 @@ def _register_targets() -> None:
             partitionable(f"diffquat_{name}")
 
 
+def _set_tables() -> None:
+    """Hand the kernels the tables that the torch binding passes with each call: the Jacobians'
+    series (:func:`diffquat._lie.series_table`) and ``exp_factors``' threshold and series
+    (:func:`diffquat._algebra.exp_series_table`), for float32 and float64 (copied by the C side,
+    before any handler is registered)."""
+    for f64, dtype in ((0, np.float32), (1, np.float64)):
+        flat, terms = _lie.series_table(float(np.finfo(dtype).eps))
+        series = np.asarray(flat, np.float64)
+        exp = np.asarray(_algebra.exp_series_table(np, dtype), np.float64)
+        _kernels.xla_set_tables(f64, series.ctypes.data, len(series), *terms, exp.ctypes.data)
+
+
+_set_tables()
 _register_targets()
 
 
@@ -200,11 +213,16 @@ def _result_type(arg: Any, core: int, trailing: tuple[int, ...], *others: Any) -
     ``core``) followed by ``trailing``: the dtype of ``arg``, not weak, and the rest of its type, which
     ``update`` keeps: the sharding of the batch dimensions (sharding in types; the trailing ones
     unsharded) and the mesh axes it varies over inside ``shard_map``. Every argument must vary over
-    the same axes, as jax's own primitives require (a tangent or cotangent varies with its matrix)."""
+    the same axes: a kernel's primitive takes one type for all its operands (a tangent or cotangent
+    varies with its matrix, and ``quaternion_plus`` gives two inputs of two types to the formula)."""
     mat = getattr(arg, "mat", None)  # jax before varying-axes types has none
     if any(getattr(other, "mat", None) != mat for other in others):
         raise ValueError(f"diffquat: arguments that vary over different mesh axes: {(arg, *others)}")
     batch = arg.ndim - core
+    # The kernels read as many rows of every operand as the first has: one batch shape for all (the
+    # public functions broadcast first; a primitive bound directly on others is refused here).
+    if any(other.shape[:batch] != arg.shape[:batch] or other.ndim - batch not in (1, 2) for other in others):
+        raise ValueError(f"diffquat: operands of different batch shapes: {(arg, *others)}")
     shape = (*arg.shape[:batch], *trailing)
     sharding = getattr(arg, "sharding", None)  # jax before sharding in types has none
     if sharding is None:
@@ -263,11 +281,26 @@ def _transpose(to: Primitive) -> Callable[..., list[Any]]:
     return transpose
 
 
-ad.primitive_jvps[m2q_p] = _m2q_jvp
-ad.primitive_jvps[m2q_tangent_p] = _formula_jvp(_tangent_formula)
-ad.primitive_jvps[m2q_cotangent_p] = _formula_jvp(_cotangent_formula)
-ad.primitive_transposes[m2q_tangent_p] = _transpose(m2q_cotangent_p)
-ad.primitive_transposes[m2q_cotangent_p] = _transpose(m2q_tangent_p)
+def _differentiate(
+    prim: Primitive,
+    jvp: Callable[..., tuple[Any, Any]],
+    tangent: tuple[Primitive, Callable[..., Any]],
+    cotangent: tuple[Primitive, Callable[..., Any]],
+    transposes: tuple[Callable[..., list[Any]], Callable[..., list[Any]]] | None = None,
+) -> None:
+    """Register the derivative rules of a map's three primitives: ``jvp`` for the forward kernel, the
+    formulas' JVPs for the tangent and the cotangent primitive (each given with its formula), and
+    their transposes, by default :func:`_transpose` of each other."""
+    (tangent_p, tangent_formula), (cotangent_p, cotangent_formula) = tangent, cotangent
+    ad.primitive_jvps[prim] = jvp
+    ad.primitive_jvps[tangent_p] = _formula_jvp(tangent_formula)
+    ad.primitive_jvps[cotangent_p] = _formula_jvp(cotangent_formula)
+    of_tangent, of_cotangent = transposes or (_transpose(cotangent_p), _transpose(tangent_p))
+    ad.primitive_transposes[tangent_p] = of_tangent
+    ad.primitive_transposes[cotangent_p] = of_cotangent
+
+
+_differentiate(m2q_p, _m2q_jvp, (m2q_tangent_p, _tangent_formula), (m2q_cotangent_p, _cotangent_formula))
 
 
 def matrix_to_quaternion(matrix: Array, scalar_first: bool) -> Array:
@@ -281,19 +314,6 @@ def matrix_to_quaternion(matrix: Array, scalar_first: bool) -> Array:
 # mode of the core formula (jax.jvp of it, which XLA compiles); its cotangent, the backward kernel,
 # whose formula is jax.vjp of the core. Tangent and cotangent are each other's transpose.
 
-
-def _set_tables() -> None:
-    """Hand the kernels the tables that the torch binding passes with each call: the Jacobians'
-    series (:func:`diffquat._lie.series_table`) and ``exp_factors``' threshold and series
-    (:func:`diffquat._algebra.exp_series_table`), for float32 and float64 (copied by the C side)."""
-    for f64, dtype in ((0, np.float32), (1, np.float64)):
-        flat, terms = _lie.series_table(float(np.finfo(dtype).eps))
-        series = np.asarray(flat, np.float64)
-        exp = np.asarray(_algebra.exp_series_table(np, dtype), np.float64)
-        _kernels.xla_set_tables(f64, series.ctypes.data, len(series), *terms, exp.ctypes.data)
-
-
-_set_tables()
 
 # The Jacobian of each kind (the kernels' Args.first: 0 J_l, 1 J_r, 2 J_l^-1, 3 J_r^-1), by the
 # name of its handlers.
@@ -336,11 +356,9 @@ def _jac_jvp(primals: tuple[Array], tangents: tuple[Any], *, kind: str) -> tuple
     return _bind(jac_p, omega, kind=kind), _bind(jac_tangent_p, omega, _instantiate(domega), kind=kind)
 
 
-ad.primitive_jvps[jac_p] = _jac_jvp
-ad.primitive_jvps[jac_tangent_p] = _formula_jvp(_jac_tangent_formula)
-ad.primitive_jvps[jac_cotangent_p] = _formula_jvp(_jac_cotangent_formula)
-ad.primitive_transposes[jac_tangent_p] = _transpose(jac_cotangent_p)
-ad.primitive_transposes[jac_cotangent_p] = _transpose(jac_tangent_p)
+_differentiate(
+    jac_p, _jac_jvp, (jac_tangent_p, _jac_tangent_formula), (jac_cotangent_p, _jac_cotangent_formula)
+)
 
 
 def jacobian(omega: Array, kind: str) -> Array:
@@ -415,11 +433,13 @@ def _qplus_cotangent_transpose(cts: list[Any], q: Any, d: Any, g: Any, **params:
     return [None, None, _bind(qplus_tangent_p, q, d, cq, cd, **params)]
 
 
-ad.primitive_jvps[qplus_p] = _qplus_jvp
-ad.primitive_jvps[qplus_tangent_p] = _formula_jvp(_qplus_tangent_formula)
-ad.primitive_jvps[qplus_cotangent_p] = _formula_jvp(_qplus_cotangent_formula)
-ad.primitive_transposes[qplus_tangent_p] = _qplus_tangent_transpose
-ad.primitive_transposes[qplus_cotangent_p] = _qplus_cotangent_transpose
+_differentiate(
+    qplus_p,
+    _qplus_jvp,
+    (qplus_tangent_p, _qplus_tangent_formula),
+    (qplus_cotangent_p, _qplus_cotangent_formula),
+    (_qplus_tangent_transpose, _qplus_cotangent_transpose),
+)
 
 
 def quaternion_plus(q: Array, delta: Array, side: str, scalar_first: bool) -> Array:
@@ -430,4 +450,26 @@ def quaternion_plus(q: Array, delta: Array, side: str, scalar_first: bool) -> Ar
     batch = jax.numpy.broadcast_shapes(q.shape[:-1], delta.shape[:-1])
     q = jax.numpy.broadcast_to(q, (*batch, 4))
     delta = jax.numpy.broadcast_to(delta, (*batch, 3))
+    if not _one_type(q, delta):
+        return _qplus_formula(q, delta, scalar_first=bool(scalar_first), right=right)
     return cast(Array, _bind(qplus_p, q, delta, scalar_first=bool(scalar_first), right=right))
+
+
+def _one_type(a: Array, b: Array) -> bool:
+    """Whether two arrays of one batch shape have one type beyond shape and dtype: they vary over the
+    same mesh axes (inside ``shard_map``) and their batch dimensions are sharded alike. jax's own
+    binary operations reconcile two such types (a ``pcast``, a resharding), which the formula
+    inherits; a kernel's primitive takes one type for all its operands, so other pairs (``q``
+    varying over an axis and ``delta`` replicated, say) take the formula."""
+    ta, tb = jax.typeof(a), jax.typeof(b)
+    if getattr(ta, "mat", None) != getattr(tb, "mat", None):
+        return False
+    sa, sb = getattr(ta, "sharding", None), getattr(tb, "sharding", None)
+    if sa is None or sb is None:
+        return sa is sb
+    batch = a.ndim - 1
+    return _padded(sa.spec, a.ndim)[:batch] == _padded(sb.spec, b.ndim)[:batch]
+
+
+def _padded(spec: Any, ndim: int) -> tuple[Any, ...]:
+    return (*spec, *(None,) * (ndim - len(spec)))
