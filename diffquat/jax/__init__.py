@@ -271,15 +271,13 @@ def _kernels_on() -> bool:
     return _KERNELS_ON is not None and bool(_KERNELS_ON.value)
 
 
-def _kernels_on_the_cpu(matrix: Array, scalar_first: bool, elsewhere: Callable[[Array], Array]) -> Array:
-    """matrix_to_quaternion by the C kernels (_xla.py) where ``jit`` lowers for the CPU, by ``elsewhere``
-    on other platforms (the branch not chosen is not lowered), while :func:`cpu_kernels` is on; by
-    ``elsewhere`` on every platform while it is off (the default)."""
+def _on_the_cpu(kernel: Callable[..., Array], elsewhere: Callable[..., Array], *arrays: Array) -> Array:
+    """``kernel`` (the C kernels, _xla.py) of ``arrays`` where ``jit`` lowers for the CPU and
+    ``elsewhere`` on other platforms (the branch not chosen is not lowered), while :func:`cpu_kernels`
+    is on; ``elsewhere`` on every platform while it is off (the default)."""
     if not _kernels_on():
-        return elsewhere(matrix)
-    return jax.lax.platform_dependent(
-        matrix, cpu=lambda m: _xla.matrix_to_quaternion(m, scalar_first), default=elsewhere
-    )
+        return elsewhere(*arrays)
+    return jax.lax.platform_dependent(*arrays, cpu=kernel, default=elsewhere)
 
 
 def _matrix_to_quaternion(xp: Any, matrix: Array, *, scalar_first: bool = True) -> Array:
@@ -287,7 +285,8 @@ def _matrix_to_quaternion(xp: Any, matrix: Array, *, scalar_first: bool = True) 
     on. Side by side at N = 262144 the kernels measured 1.5x faster forward than the formula and 1.4x
     forward + backward, 2.4x both at N = 4096."""
     portable = _M2Q[bool(scalar_first)]
-    return _kernels_on_the_cpu(matrix, scalar_first, lambda m: portable(xp, m))
+    kernel = lambda m: _xla.matrix_to_quaternion(m, scalar_first)  # noqa: E731
+    return _on_the_cpu(kernel, lambda m: portable(xp, m), matrix)
 
 
 _matrix_to_quaternion.__name__ = "matrix_to_quaternion"  # the Backend validates arguments by this name
@@ -393,7 +392,7 @@ def axis_angle_to_matrix(axis_angle: ArrayLike) -> Array:
 # forward and 3x forward + backward (XLA's own derivative of the plain step carried all four
 # candidates, and fused thirteen divisions into each of the nine entries of the cotangent).
 def _m2q_step(xp: Any, matrix: Array) -> Array:
-    return _kernels_on_the_cpu(matrix, True, lambda m: _M2Q[True](xp, m))
+    return _on_the_cpu(lambda m: _xla.matrix_to_quaternion(m, True), lambda m: _M2Q[True](xp, m), matrix)
 
 
 @documented(_algebra.matrix_to_axis_angle)
@@ -481,22 +480,16 @@ def so3_hat(omega: ArrayLike) -> Array:
 
 
 def _kernels_or(core_fn: Callable[..., Array], kernel: Callable[..., Array]) -> Callable[..., Any]:
-    """The Backend's ``choose`` for a function with C kernels (_xla.py): ``core_fn`` while
-    :func:`cpu_kernels` is off (the default); while it is on, ``kernel(*arrays, **options)`` where
-    ``jit`` lowers for the CPU and ``core_fn`` on other platforms (the branch not chosen is not
-    lowered). The kernels have the core's non-finite rows (the torch binding's tests)."""
+    """The Backend's ``choose`` for a function with C kernels: ``kernel(*arrays, **options)`` or
+    ``core_fn`` as :func:`_on_the_cpu` decides. The kernels have the core's non-finite rows (the torch
+    binding's tests)."""
 
-    def on_the_cpu(xp: Any, *arrays: Array, **options: Any) -> Array:
-        return jax.lax.platform_dependent(
-            *arrays,
-            cpu=lambda *xs: kernel(*xs, **options),
-            default=lambda *xs: core_fn(xp, *xs, **options),
+    def evaluate(xp: Any, *arrays: Array, **options: Any) -> Array:
+        return _on_the_cpu(
+            lambda *xs: kernel(*xs, **options), lambda *xs: core_fn(xp, *xs, **options), *arrays
         )
 
-    def choose(*arrays: Array) -> Callable[..., Array]:
-        return on_the_cpu if _kernels_on() else core_fn
-
-    return choose
+    return lambda *arrays: evaluate
 
 
 # The Jacobians and quaternion_plus take the kernels on the CPU while cpu_kernels is on: side by side

@@ -325,19 +325,34 @@ JACOBIANS: dict[str, Callable[[Any, Array], Array]] = {
 }
 
 
+def _forward_mode(formula: Callable[..., Array], inputs: int) -> Callable[..., Array]:
+    """The tangent formula of ``formula`` of ``inputs`` arrays: ``(*x, *dx) -> dy``, jax's forward mode."""
+
+    def tangent(*args: Array, **params: Any) -> Array:
+        out: Array = jax.jvp(functools.partial(formula, **params), args[:inputs], args[inputs:])[1]
+        return out
+
+    return tangent
+
+
+def _reverse_mode(formula: Callable[..., Array], inputs: int) -> Callable[..., Any]:
+    """The cotangent formula of ``formula`` of ``inputs`` arrays: ``(*x, g) -> dL/dx`` (a list where
+    ``inputs`` > 1, as a primitive of multiple results returns), jax's reverse mode."""
+
+    def cotangent(*args: Array, **params: Any) -> Any:
+        _, pullback = jax.vjp(functools.partial(formula, **params), *args[:inputs])
+        out = pullback(args[inputs])
+        return list(out) if inputs > 1 else out[0]
+
+    return cotangent
+
+
 def _jac_formula(omega: Array, *, kind: str) -> Array:
     return JACOBIANS[kind](XP, omega)
 
 
-def _jac_tangent_formula(omega: Array, domega: Array, *, kind: str) -> Array:
-    tangent: Array = jax.jvp(functools.partial(_jac_formula, kind=kind), (omega,), (domega,))[1]
-    return tangent
-
-
-def _jac_cotangent_formula(omega: Array, g: Array, *, kind: str) -> Array:
-    _, pullback = jax.vjp(functools.partial(_jac_formula, kind=kind), omega)
-    cotangent: Array = pullback(g)[0]
-    return cotangent
+_jac_tangent_formula = _forward_mode(_jac_formula, 1)
+_jac_cotangent_formula = _reverse_mode(_jac_formula, 1)
 
 
 jac_p = _primitive("jac", lambda omega, *, kind: _result_type(omega, 1, (3, 3)), _jac_formula)
@@ -371,17 +386,8 @@ def _qplus_formula(q: Array, d: Array, *, scalar_first: bool, right: bool) -> Ar
     return _lie.quaternion_plus(XP, q, d, side=side, scalar_first=scalar_first)
 
 
-def _qplus_tangent_formula(
-    q: Array, d: Array, dq: Array, dd: Array, *, scalar_first: bool, right: bool
-) -> Array:
-    fn = functools.partial(_qplus_formula, scalar_first=scalar_first, right=right)
-    tangent: Array = jax.jvp(fn, (q, d), (dq, dd))[1]
-    return tangent
-
-
-def _qplus_cotangent_formula(q: Array, d: Array, g: Array, *, scalar_first: bool, right: bool) -> list[Array]:
-    _, pullback = jax.vjp(functools.partial(_qplus_formula, scalar_first=scalar_first, right=right), q, d)
-    return list(pullback(g))
+_qplus_tangent_formula = _forward_mode(_qplus_formula, 2)
+_qplus_cotangent_formula = _reverse_mode(_qplus_formula, 2)
 
 
 def _qplus_target(kind: str) -> Callable[..., str]:
