@@ -100,7 +100,6 @@ TOPICS: dict[str, list[str]] = {
         "ScaleByRiemannianAdamState",
         "RiemannianMomentumState",
     ],
-    "Backend switches": ["cpu_kernels"],
     "Types": ["EulerConvention", "MeanMethod", "Representation", "Rotation6DLayout", "Side"],
     "Version": ["__version__"],
 }
