@@ -6,6 +6,11 @@ topic by topic (docs/api_topics.py), one mkdocstrings entry per name of the modu
 the same for each of its public submodules (so ``diffquat.torch.nn``, and any submodule added later,
 lands on the torch page). ``<!-- api diffquat shallow -->`` leaves the submodules out. A public name
 in no topic fails the build.
+
+Math is typeset by MathJax 3, served from the site itself (nothing is fetched from another host): its
+files come from the ``django-static-mathjax`` package (the docs extra installs it; it holds MathJax's
+own build and depends on nothing, Django included), and ``docs/javascripts/mathjax.js`` configures it
+for every page, the notebook pages included.
 """
 
 from __future__ import annotations
@@ -27,6 +32,11 @@ ROOT = Path(__file__).resolve().parents[1]
 # Outside docs/, published at the same paths as in the repository (so their relative links hold).
 EXTERNAL = ["notebooks/*.ipynb", "notebooks/figures/*.png", "benchmarks/*.md", "benchmarks/*.png"]
 MARKER = re.compile(r"<!-- api (?P<module>[\w.]+)(?P<shallow> shallow)? -->")
+# Where the site serves MathJax (mkdocs.yml's extra_javascript loads MATHJAX / "tex-chtml.js"), and
+# what of MathJax's es5 build it needs: the TeX-to-HTML bundle, and the folders that bundle loads from
+# at run time (the HTML output's fonts, TeX packages loaded on first use, the menu, assistive MathML).
+MATHJAX = "assets/mathjax"
+MATHJAX_PARTS = ["tex-chtml.js", "output/chtml", "input/tex/extensions", "ui", "a11y"]
 
 
 def _topics() -> ModuleType:
@@ -55,7 +65,24 @@ def on_files(files: Files, config: Any) -> Files:
             # reads a notebook's source path from its folder, which a generated file has none of).
             uri = path.relative_to(ROOT).as_posix()
             files.append(File(uri, str(ROOT), config["site_dir"], config["use_directory_urls"]))
+    es5 = _mathjax_es5()
+    for part in MATHJAX_PARTS:
+        for path in [es5 / part] if (es5 / part).is_file() else sorted((es5 / part).rglob("*.*")):
+            uri = f"{MATHJAX}/{path.relative_to(es5).as_posix()}"
+            files.append(File.generated(config, uri, abs_src_path=str(path)))
     return files
+
+
+def _mathjax_es5() -> Path:
+    """MathJax's es5 build, as the django-static-mathjax package installs it."""
+    spec = importlib.util.find_spec("mathjax")
+    es5 = Path(spec.origin).parent / "static" / "mathjax" / "es5" if spec and spec.origin else None
+    if es5 is None or not (es5 / "tex-chtml.js").is_file():
+        raise SystemExit(
+            'MathJax not found: the docs extra installs it (pip install -e ".[docs]", which brings the '
+            "django-static-mathjax package); the site serves it itself"
+        )
+    return es5
 
 
 def _module_markdown(module: ModuleType, topic_of: dict[str, str], order: list[str]) -> str:
@@ -128,3 +155,23 @@ def on_post_build(config: Any) -> None:
 
 def on_page_markdown(markdown: str, page: Any, config: Any, files: Files) -> str:
     return MARKER.sub(lambda m: api_markdown(m.group("module"), bool(m.group("shallow"))), markdown)
+
+
+# On a notebook page, mkdocs-jupyter writes nbconvert's MathJax 2 loader, whose script has an empty
+# src (its plugin passes its empty custom_mathjax_url on) and whose configuration MathJax 3 does not
+# read: the page loads the site's MathJax like every other page, so the loader goes.
+NBCONVERT_MATHJAX = re.compile(r"<!-- Load mathjax -->.*?<!-- End of mathjax configuration -->", re.S)
+# A stream a notebook's code wrote to stderr (tqdm's progress bars): nbconvert shows it in a pink box, an
+# error to a reader's eye. The notebooks' stored outputs hold none; this keeps a re-execution's out.
+STDERR_OUTPUT = re.compile(
+    r'<div class="jp-OutputArea-child">\s*<div class="jp-OutputPrompt jp-OutputArea-prompt"></div>\s*'
+    r'<div class="[^"]*" data-mime-type="application/vnd\.jupyter\.stderr"[^>]*>\s*<pre>.*?</pre>\s*</div>\s*'
+    r"</div>",
+    re.S,
+)
+
+
+def on_page_content(html: str, page: Any, config: Any, files: Files) -> str:
+    if page.file.src_uri.endswith(".ipynb"):
+        html = STDERR_OUTPUT.sub("", NBCONVERT_MATHJAX.sub("", html))
+    return html

@@ -1,15 +1,24 @@
 """The documentation site as a reader sees it: built with ``mkdocs build --strict`` (a warning fails
 it), every public name of every public module has its entry in the API reference, every link and
-image inside the site resolves (anchors included), the topic map covers the public API exactly, and
-the code on the pages runs (the migration guides compare diffquat with each peer)."""
+image inside the site resolves (anchors included), the topic map covers the public API exactly, the
+code on the pages runs (the migration guides compare diffquat with each peer), and, rendered by
+headless Chromium from a local server, the math is typeset, no notebook output looks like an error,
+and nothing is loaded from another host."""
 
 from __future__ import annotations
 
+import functools
+import html
+import http.server
 import importlib.util
 import json
+import os
 import re
+import shutil
 import subprocess
 import sys
+import threading
+from collections.abc import Iterator
 from html.parser import HTMLParser
 from pathlib import Path
 from types import ModuleType
@@ -155,34 +164,143 @@ def test_readme_links_into_the_docs_resolve() -> None:
     assert [t for t in targets if not (ROOT / t).exists()] == []
 
 
+# ---------------------------------------------------------------------------------------------------
+# The site as a reader's browser shows it: headless Chromium (Debian's ``chromium``;
+# scripts/install-test-tools installs it) loads the built site from a local HTTP server, with every
+# other host unreachable, and its DOM after the scripts ran (MathJax included) is read.
+
+
+class _Served:
+    """The built site on an HTTP server of 127.0.0.1, and the status of each request it answered."""
+
+    def __init__(self, site: Path) -> None:
+        self.requests: list[tuple[str, int]] = []
+        requests = self.requests
+
+        class Handler(http.server.SimpleHTTPRequestHandler):
+            def log_request(self, code: int | str = "-", size: int | str = "-") -> None:
+                requests.append((self.path, int(code)))
+
+        self.server = http.server.ThreadingHTTPServer(
+            ("127.0.0.1", 0), functools.partial(Handler, directory=str(site))
+        )
+        threading.Thread(target=self.server.serve_forever, daemon=True).start()
+
+    def url(self, page: str) -> str:
+        return f"http://127.0.0.1:{self.server.server_address[1]}/{page}"
+
+
+@pytest.fixture(scope="module")
+def served(site: Path) -> Iterator[_Served]:
+    server = _Served(site)
+    yield server
+    server.server.shutdown()
+    server.server.server_close()
+
+
+@pytest.fixture(scope="module")
+def chromium() -> str:
+    found = shutil.which("chromium") or shutil.which("chromium-browser")
+    if found is None:
+        message = "chromium is not installed (scripts/install-test-tools installs it)"
+        if os.environ.get("CI"):
+            pytest.fail(message + ": CI must render the site")
+        pytest.skip(message)
+    return found
+
+
+def _browse(chromium: str, url: str, *what: str) -> subprocess.CompletedProcess[str]:
+    """One headless Chromium run on ``url``: ``--dump-dom`` or ``--screenshot=...``. Virtual time runs
+    until the page is idle (its scripts, MathJax's typesetting and its fonts) or 15 s have passed;
+    every host but 127.0.0.1 fails to resolve, so the page can load nothing from elsewhere."""
+    flags = [
+        "--headless=new",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--hide-scrollbars",
+        "--window-size=1280,900",
+        "--virtual-time-budget=15000",
+        "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE 127.0.0.1",
+    ]
+    return subprocess.run([chromium, *flags, *what, url], capture_output=True, text=True, timeout=120)
+
+
+class _Assets(HTMLParser):
+    """The scripts and stylesheets a page loads."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.loads: list[str] = []
+
+    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+        found = dict(attrs)
+        if tag == "script" and "src" in found:
+            self.loads.append(found["src"] or "")
+        if tag == "link" and found.get("rel") in ("stylesheet", "preload", "modulepreload"):
+            self.loads.append(found.get("href") or "")
+
+
+def test_pages_load_only_the_sites_own_scripts_and_stylesheets(site: Path) -> None:
+    """No script or stylesheet with an empty address (mkdocs-jupyter's MathJax loader had one), and
+    none from another host (a CDN, web fonts): the site reads the same offline."""
+    wrong = []
+    for path in sorted(site.rglob("*.html")):
+        assets = _Assets()
+        assets.feed(path.read_text())
+        wrong += [f"{path.relative_to(site)}: {a!r}" for a in assets.loads if not a or urlsplit(a).netloc]
+    assert not wrong, "\n".join(wrong)
+
+
+# A page of math and notebook pages (their markdown writes $...$; the first two printed progress bars
+# to stderr): each with the least number of typeset expressions it shows.
+MATH_PAGES = {"conventions/": 10, "notebooks/fit_orientation/": 5, "notebooks/pose_regression/": 1}
+HIDDEN = re.compile(r"<(mjx-container|pre|code|script|style|textarea)\b.*?</\1>", re.S)
+RAW_TEX = re.compile(r"\\[(\[]|\$\$|\$[^$\s][^$]*\$")
+
+
+@pytest.mark.parametrize("page", sorted(MATH_PAGES))
+def test_math_is_typeset_and_no_output_is_an_error_box(
+    page: str, site: Path, served: _Served, chromium: str
+) -> None:
+    """What a reader sees: every formula typeset by MathJax (served by the site itself), no TeX left
+    as text, no TeX error; on a notebook page no output shown as an error (stderr) box; and every
+    file the page asked for was there."""
+    served.requests.clear()
+    dom = _browse(chromium, served.url(page), "--dump-dom").stdout
+    assert "</html>" in dom, "chromium rendered nothing"
+    typeset = dom.count("<mjx-container")
+    assert typeset >= MATH_PAGES[page], f"{typeset} formulas typeset"
+    if not page.startswith("notebooks/"):  # one formula per arithmatex element
+        assert typeset == (site / page / "index.html").read_text().count('class="arithmatex"')
+    assert "<mjx-merror" not in dom and "data-mjx-error" not in dom, "a TeX error"
+    text = html.unescape(re.sub(r"<[^>]+>", " ", HIDDEN.sub(" ", dom)))
+    assert RAW_TEX.findall(text) == [], "TeX left as text"
+    stderr_boxes = re.findall(r'<[^>]+data-mime-type="application/vnd\.jupyter\.stderr"', dom)
+    assert stderr_boxes == [], "an output shown as an error box"
+    failed = [(path, code) for path, code in served.requests if code >= 400]
+    assert served.requests and not failed, failed
+
+
 # The pages a newcomer opens first, and an element each must show once rendered.
 RENDERED = {
-    "index.html": 'id="quick-start"',
-    "api/torch/index.html": 'id="diffquat.torch.quaternion_to_matrix"',
+    "": 'id="quick-start"',
+    "api/torch/": 'id="diffquat.torch.quaternion_to_matrix"',
 }
 
 
 @pytest.mark.parametrize("page", sorted(RENDERED))
-def test_pages_render_in_a_headless_browser(site: Path, page: str, tmp_path: Path) -> None:
-    """Headless Chromium (Debian's ``chromium``; scripts/install-test-tools installs it) renders the
-    home page and the torch API page: its DOM after the theme's scripts ran holds the page's content,
-    and its screenshot shows the theme's coloured header bar above dark text on a light page, the
-    layout a reader gets (an unstyled page, a missing stylesheet or a blank render fail)."""
-    import shutil
-
+def test_pages_render_in_a_headless_browser(
+    page: str, served: _Served, chromium: str, tmp_path: Path
+) -> None:
+    """The home page and the torch API page: the DOM after the theme's scripts ran holds the page's
+    content, and the screenshot shows the theme's coloured header bar above dark text on a light
+    page, the layout a reader gets (an unstyled page, a missing stylesheet or a blank render fail)."""
     import matplotlib.image
 
-    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
-    if chromium is None:
-        pytest.skip("chromium is not installed (scripts/install-test-tools installs it)")
-    url = (site / page).as_uri()
-    flags = ["--headless=new", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", "--window-size=1280,900"]
-    dom = subprocess.run([chromium, *flags, "--dump-dom", url], capture_output=True, text=True, timeout=120)
+    dom = _browse(chromium, served.url(page), "--dump-dom")
     assert RENDERED[page] in dom.stdout, dom.stderr[-2000:]
     shot = tmp_path / "page.png"
-    subprocess.run(
-        [chromium, *flags, f"--screenshot={shot}", url], capture_output=True, timeout=120, check=True
-    )
+    _browse(chromium, served.url(page), f"--screenshot={shot}").check_returncode()
     rgb = matplotlib.image.imread(shot)[..., :3]
     assert rgb.shape[:2] == (900, 1280)
     header, body = rgb[5:40], rgb[60:]
