@@ -1,11 +1,16 @@
-"""The package as a user installs it: ``python -m build`` makes an sdist and, from the sdist, a wheel;
-the wheel installs (not editable) into a fresh virtual environment, runs there, and a user's type
-checker sees its real signatures (tensor in, tensor out; the string options as Literal types).
+"""The package as a user installs it: ``python -m build`` makes an sdist and, from the sdist, a pure
+Python wheel (``py3-none-any``); the wheel installs (not editable) into a fresh virtual environment,
+runs there, and a user's type checker sees its real signatures (tensor in, tensor out; the string
+options as Literal types).
 
-The environment is made with ``--system-site-packages`` so that it finds the torch, jax and numpy
-installed here without downloading them; what makes it a test of the wheel is that the environment's
-own site-packages, where the wheel goes, comes first, which every test here checks
-(``diffquat.__file__`` and the files mypy reads lie in the environment).
+The environment finds the torch, jax, numpy and mypy of the Python running the tests, without
+downloading them, through a ``.pth`` file that appends that Python's site-packages folders to its
+path. Not ``--system-site-packages``: from inside a virtual environment (where the README runs the
+tests) that reaches the base interpreter's packages, not the environment's, and torch is missing
+there. What makes it a test of the wheel is that the environment's own site-packages, where the
+wheel goes, comes first (the appended folders' own ``.pth`` files, such as an editable install's, are
+not read), which every test here checks (``diffquat.__file__`` and the files mypy reads lie in the
+environment).
 """
 
 from __future__ import annotations
@@ -13,8 +18,10 @@ from __future__ import annotations
 import os
 import re
 import shutil
+import site
 import subprocess
 import sys
+import sysconfig
 import tarfile
 import zipfile
 from pathlib import Path
@@ -33,15 +40,27 @@ def _run(args: list[str | Path], cwd: Path, check: bool = True) -> subprocess.Co
 
 def build(out: Path) -> None:
     """``python -m build``: the sdist, then the wheel built from the unpacked sdist (so the sdist must
-    hold everything the build needs, the C source of the kernels included). ``--no-isolation``: the
-    build runs on the setuptools installed here (the build-system requirement), with no download."""
+    hold everything the build needs). ``--no-isolation``: the build runs on the setuptools installed
+    here (the build-system requirement), with no download."""
     _run([sys.executable, "-m", "build", "--no-isolation", "--outdir", out, ROOT], cwd=out)
+
+
+def packages_here() -> list[str]:
+    """The folders the Python running the tests imports installed packages from: its site-packages
+    (a virtual environment's own, or the base interpreter's), and the user's where it is on."""
+    folders = [*site.getsitepackages(), sysconfig.get_path("purelib"), sysconfig.get_path("platlib")]
+    if site.ENABLE_USER_SITE:
+        folders.append(site.getusersitepackages())
+    return [f for f in dict.fromkeys(folders) if Path(f).is_dir()]
 
 
 def install(dist: Path, home: Path) -> Path:
     """A fresh virtual environment with the wheel installed in it, not editable; its Python."""
-    _run([sys.executable, "-m", "venv", "--system-site-packages", "--without-pip", home / "env"], cwd=home)
+    _run([sys.executable, "-m", "venv", "--without-pip", home / "env"], cwd=home)
     python = home / "env" / "bin" / "python"
+    own = _run([python, "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"], cwd=home)
+    # After the environment's own site-packages: the packages installed here, pip included.
+    (Path(own.stdout.strip()) / "packages_of_the_tests.pth").write_text("\n".join(packages_here()) + "\n")
     (wheel,) = dist.glob("*.whl")
     # The pip installed here, run by the environment's Python, installs into the environment.
     _run([python, "-m", "pip", "install", "--no-deps", "--no-index", "--quiet", wheel], cwd=home)
@@ -52,29 +71,31 @@ def check_contents(dist: Path) -> None:
     (sdist,) = dist.glob("*.tar.gz")
     with tarfile.open(sdist) as tar:
         in_sdist = {name.split("/", 1)[1] for name in tar.getnames() if "/" in name}
-    for name in ("diffquat/_kernels.c", "diffquat/_kernels.pyi", "diffquat/py.typed", "pyproject.toml"):
+    for name in ("diffquat/__init__.py", "diffquat/py.typed", "pyproject.toml", "README.md"):
         assert name in in_sdist, name
     (wheel,) = dist.glob("*.whl")
+    # Pure Python: one wheel for every platform and every Python 3.
+    assert wheel.name == "diffquat-0.1.0-py3-none-any.whl", wheel.name
     in_wheel = set(zipfile.ZipFile(wheel).namelist())
     assert {
         "diffquat/py.typed",
-        "diffquat/_kernels.pyi",
         "diffquat/torch/nn.py",
         "diffquat/jax/nn.py",
     } <= in_wheel
-    # The extension is optional at install time, but wherever a C compiler exists (here) it is built.
-    assert any(re.fullmatch(r"diffquat/_kernels\..*\.so", name) for name in in_wheel), sorted(in_wheel)
+    packaged = in_sdist | in_wheel
+    native = [n for n in packaged if re.search(r"\.(c|h|so|pyd|dylib)$", n) or "_kernels" in n]
+    assert native == [], native
 
 
 SMOKE = """
 import sys
 import numpy as np, torch, jax.numpy as jnp
-import diffquat, diffquat._kernels, diffquat.numpy as dn, diffquat.torch as dt, diffquat.jax as dj
+import diffquat, diffquat.numpy as dn, diffquat.torch as dt, diffquat.jax as dj
 from diffquat.torch.nn import RotationHead
 
 prefix = sys.argv[1]
 assert diffquat.__file__.startswith(prefix), diffquat.__file__
-assert diffquat._kernels.__file__.startswith(prefix), diffquat._kernels.__file__
+assert torch.__file__ and not torch.__file__.startswith(prefix), torch.__file__  # torch from here
 half_turn_x = np.diag([1.0, -1.0, -1.0])
 q = [0.0, 1.0, 0.0, 0.0]
 np.testing.assert_allclose(dn.quaternion_to_matrix(np.array(q)), half_turn_x, atol=1e-15)
