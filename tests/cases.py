@@ -1360,11 +1360,6 @@ OPS += [
 OPS_BY_NAME = {op.id: op for op in OPS}
 
 
-# The rows whose CPU program ``diffquat.jax.cpu_kernels`` changes, and the C kernel (XLA custom-call
-# target, less its "diffquat_" prefix) their forward program then calls: the quaternion step of
-# matrix_to_axis_angle and of so3_log is matrix_to_quaternion's. test_jax_deploy.py checks every row
-# against this table; test_grads.py compares the kernels' values and derivatives with the formula's,
-# and test_xla.py reads their programs, on both sides of quaternion_plus (both_sides).
 def table_error(
     op: Op, received: Sequence[np.ndarray], actual: np.ndarray, expected: np.ndarray | None = None
 ) -> float:
@@ -1405,18 +1400,6 @@ def both_sides(op: Op) -> list[Op]:
     other = "right" if side == "left" else "left"
     return [op, replace(op, kwargs={**op.kwargs, "side": other}, label=op.id.replace(side, other))]
 
-
-JAX_KERNELS = {
-    "matrix_to_quaternion": "m2q_forward_wxyz",
-    "matrix_to_axis_angle": "m2q_forward_wxyz",
-    "so3_log": "m2q_forward_wxyz",
-    "so3_left_jacobian": "jac_forward_jl",
-    "so3_right_jacobian": "jac_forward_jr",
-    "so3_left_jacobian_inverse": "jac_forward_jl_inv",
-    "so3_right_jacobian_inverse": "jac_forward_jr_inv",
-    "quaternion_plus[left]": "qplus_forward_wxyz_left",
-    "quaternion_plus[right]": "qplus_forward_wxyz_right",  # both_sides' variant of the row
-}
 
 # Public names that are not rows of the table, with the test that covers each.
 NOT_IN_TABLE = {

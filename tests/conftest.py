@@ -12,7 +12,6 @@ import importlib
 import importlib.util
 import itertools
 import os
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -22,21 +21,6 @@ import numpy as np
 import pytest
 import torch
 from cases import CASES, DTYPES, HOST_DTYPES, OPS, concatenate_cases, host_cast
-
-
-def _swap_in_kernels(path: str) -> None:
-    """Load the extension build at ``path`` as ``diffquat._kernels`` before anything imports it: the
-    portable build of tests/test_kernels.py::test_portable_build, whose subprocess runs the kernel
-    tests again on it."""
-    spec = importlib.util.spec_from_file_location("diffquat._kernels", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    sys.modules["diffquat._kernels"] = module
-
-
-if os.environ.get("DIFFQUAT_TEST_KERNELS"):
-    _swap_in_kernels(os.environ["DIFFQUAT_TEST_KERNELS"])
 
 # Switched once, here: float64 for the gradient checks, and strict promotion so the core cannot lean
 # on an implicit cast or a rank broadcast that numpy or torch would not do the same way. Two host CPU

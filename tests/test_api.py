@@ -39,7 +39,7 @@ OWN_KEYWORDS = {
     "symmetry_group": (FACTORY_KEYWORDS,),
 }
 # A backend's own switches, public but no rotation function: jax's C-kernel switch (tests/test_jax_deploy.py).
-SWITCHES = {"numpy": set(), "torch": set(), "jax": {"cpu_kernels"}}
+SWITCHES: dict[str, set[str]] = {"numpy": set(), "torch": set(), "jax": set()}
 
 
 def public(name: str) -> dict[str, inspect.Signature]:

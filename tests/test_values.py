@@ -3,7 +3,6 @@ dtype and case in the table."""
 
 from __future__ import annotations
 
-import itertools
 import os
 import subprocess
 import sys
@@ -243,57 +242,6 @@ def test_cases_cover_the_named_edge_cases() -> None:
     shapes = {c.quaternions("float64").shape[:-1] for c in CASES}
     assert {(), (1,), (3, 1, 2), (0,)} <= shapes
     assert CASES[[c.name for c in CASES].index("half_turns")].quaternions("float64").shape == (26, 4)
-
-
-def test_matrix_to_quaternion_evaluation_orders_agree(backend: Backend, case: Case) -> None:
-    """The jax backend evaluates ``matrix_to_quaternion`` in the core's stacked order (whole-candidate
-    selection, which XLA compiles twice as fast), and under differentiation takes the result from its
-    forward-mode rule (``matrix_to_quaternion_jvp``); numpy and torch evaluate the component-wise
-    formula. All three are the same map on every namespace: equal to rounding and in the same sign,
-    for every case (half-turns with tied pivots included) and for arbitrary matrices, in both storage
-    orders."""
-    import jax.numpy as jnp
-    import torch
-
-    from diffquat import _core
-
-    xp = {"numpy": np, "torch": torch, "jax": jnp}[backend.name]
-    arbitrary = np.random.default_rng(0).normal(size=(64, 3, 3))
-    # Half-turns about every axis with components in {-1, 0, 1, 2}: w = 0 exactly, and the sign rule
-    # goes on to x, y and z, whichever candidate is chosen.
-    axes = np.array([a for a in itertools.product([-1.0, 0.0, 1.0, 2.0], repeat=3) if any(a)])
-    half_turns = np.concatenate([np.zeros((len(axes), 1)), axes / np.linalg.norm(axes, axis=1)[:, None]], 1)
-    for matrices in (
-        oracle_quaternion_to_matrix(case.quaternions("float64")),
-        oracle_quaternion_to_matrix(half_turns),
-        arbitrary,
-    ):
-        matrix = backend.array(matrices, "float64")
-        for scalar_first in (True, False):
-            a = backend.to_numpy(_core.matrix_to_quaternion(xp, matrix, scalar_first=scalar_first))
-            b = backend.to_numpy(_core.matrix_to_quaternion_stacked(xp, matrix, scalar_first=scalar_first))
-            c, _ = _core.matrix_to_quaternion_jvp(xp, matrix, matrix, scalar_first=scalar_first)
-            for other in (b, backend.to_numpy(c)):
-                np.testing.assert_allclose(other, a, rtol=0, atol=1e-15)
-                np.testing.assert_array_equal(np.sign(other), np.sign(a))
-
-
-def test_quaternion_to_matrix_gathered_form_is_the_same_map(backend: Backend, case: Case) -> None:
-    """``_core.quaternion_to_matrix_gathered``, the form the jax backend compiles for GPUs (entries
-    read by constant indices), gives the core formula's values bit for bit on every namespace, every
-    case (the zero quaternion and the extreme norms included) and both storage orders: a factor of 2
-    is exact, so ``2 (u_a u_b + ...)`` rounds as ``(2 u_a) u_b + ...``."""
-    import jax.numpy as jnp
-    import torch
-
-    from diffquat import _core
-
-    xp = {"numpy": np, "torch": torch, "jax": jnp}[backend.name]
-    q = backend.array(case.quaternions("float64"), "float64")
-    for scalar_first in (True, False):
-        a = backend.to_numpy(_core.quaternion_to_matrix(xp, q, scalar_first=scalar_first))
-        b = backend.to_numpy(_core.quaternion_to_matrix_gathered(xp, q, scalar_first=scalar_first))
-        np.testing.assert_array_equal(b, a)
 
 
 def poisoned_batch(op: Op) -> tuple[list[np.ndarray], list[np.ndarray], list[int]]:
