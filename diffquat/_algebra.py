@@ -186,10 +186,10 @@ def axis_angle_to_quaternion(xp: Any, axis_angle: Any, *, scalar_first: bool = T
     """
     vx, vy, vz = axis_angle[..., 0], axis_angle[..., 1], axis_angle[..., 2]
     w, k = exp_factors(xp, vx * vx + vy * vy + vz * vz)  # angle^2: smooth at 0, unlike the angle
-    # k v as a broadcast product, not three products stacked with w: XLA recomputed the square root,
-    # the sine and the division behind k in each of the four parts of the stack (so3_plus forward at
-    # N = 4096 1.3x slower than jaxlie's); a broadcast reuses k, which XLA keeps as one array. The same
-    # products, the same values.
+    # k v as a broadcast product, not three products stacked with w: XLA would recompute the square
+    # root, the sine and the division behind k in each of the four parts of the stack; a broadcast
+    # reuses k, which XLA keeps as one array (docs/performance.md, Formula shapes). The same products,
+    # the same values.
     v = k[..., None] * axis_angle
     return xp.concat([w[..., None], v] if scalar_first else [v, w[..., None]], axis=-1)
 
@@ -214,13 +214,6 @@ def exp_factors(xp: Any, t2: Any) -> tuple[Any, Any]:
     w = xp.where(small, w0 + w1 * u + w2 * (u * u), xp.cos(half))
     k = xp.where(small, k0 + k1 * u + k2 * (u * u), xp.sin(half) / angle)
     return w, k
-
-
-def exp_series_table(xp: Any, dtype: Any) -> list[float]:
-    """:func:`exp_factors`' threshold for ``dtype`` and its two series, as the C kernels read them
-    (``quaternion_plus``; ``diffquat/torch/_cpu.py``)."""
-    (w0, w1, w2), (k0, k1, k2) = EXP_SERIES
-    return [series_threshold(xp, dtype), w0, w1, w2, k0, k1, k2]
 
 
 def _canonical_components(xp: Any, q: Any, scalar_first: bool) -> Components:
@@ -259,9 +252,9 @@ def quaternion_to_axis_angle(xp: Any, q: Any, *, scalar_first: bool = True) -> A
     closed = 2.0 * xp.atan2(s, w) / s
     k = xp.where(small, series, closed)
     # A broadcast product, not a stack of three: XLA fuses a cheap consumer into its producers by
-    # recomputing them, and into each part of a stack it recomputed the atan2 (three per rotation:
-    # so3_log at N = 4096 2x slower than jaxlie's); a broadcast reuses the factor, which XLA then
-    # keeps as one array. The same products, the same values.
+    # recomputing them, and into each part of a stack it would recompute the atan2 (three per
+    # rotation); a broadcast reuses the factor, which XLA then keeps as one array (docs/performance.md,
+    # Formula shapes). The same products, the same values.
     return k[..., None] * xp.stack([x, y, z], axis=-1)
 
 

@@ -94,9 +94,9 @@ def nonfinite_rows(xp: Any, out: Any, arrays: list[tuple[Any, tuple[int, ...]]])
     path would document its own result. This one is a selection (no arithmetic on the bad values
     outside their row), so nothing leaks into other rows, and its derivative is the identity on the
     good rows and 0 from the output of the bad ones."""
-    # Which rows are bad: _core.zero_or_nan of each input, summed (NaN exactly in the bad rows). Where
-    # isfinite, a negation and an any per trailing axis each took a pass over memory in eager torch
-    # (the rule alone at N = 262144 for so3_plus's inputs: 8.1 ms -> ~5 ms).
+    # Which rows are bad: _core.zero_or_nan of each input, summed (NaN exactly in the bad rows): one
+    # product and one sum per input, where isfinite, a negation and an any per trailing axis would
+    # each take a pass over memory in eager torch (docs/performance.md, Formula shapes).
     acc = None
     for x, trailing in arrays:
         z = _core.zero_or_nan(xp, x, len(trailing))
@@ -208,27 +208,17 @@ class Backend:
             return self.scalar(x, dtype, next((a for a in like if not isinstance(a, int | float)), None))
         return x if x.dtype == dtype else self.astype(x, dtype)
 
-    def __call__(
-        self,
-        core_fn: Callable[..., Any],
-        *arrays: Any,
-        choose: Callable[..., Callable[..., Any]] | None = None,
-        **options: Any,
-    ) -> Any:
-        """Validate ``arrays``, run ``core_fn`` in the compute dtype, return in the promoted dtype.
-
-        ``choose(*xs)``, given the validated arrays in their compute dtype, may name another
-        evaluation of the same map (a backend's fast path); one whose ``handles_nonfinite`` attribute
-        is true applies :func:`nonfinite_rows`'s rule itself, as the core functions named in
-        ``_core.NONFINITE_BY_ARITHMETIC`` do by their arithmetic."""
+    def __call__(self, core_fn: Callable[..., Any], *arrays: Any, **options: Any) -> Any:
+        """Validate ``arrays``, run ``core_fn`` in the compute dtype, return in the promoted dtype,
+        with :func:`nonfinite_rows`'s rule applied, except after the core functions named in
+        ``_core.NONFINITE_BY_ARITHMETIC``, which make non-finite rows NaN by their arithmetic."""
         fname = core_fn.__name__
         checked, dtype = self.validate(fname, *arrays)
         compute = self.compute_dtype(dtype)
         inputs = [x if x is None or x.dtype == compute else self.astype(x, compute) for x in checked]
-        fn = core_fn if choose is None else choose(*[x for x in inputs if x is not None])
         with self.guard(inputs[0]):
-            out = fn(self.xp, *inputs, **options)
-            if not (getattr(fn, "handles_nonfinite", False) or fname in _core.NONFINITE_BY_ARITHMETIC):
+            out = core_fn(self.xp, *inputs, **options)
+            if fname not in _core.NONFINITE_BY_ARITHMETIC:
                 rows = [(x, t) for x, t in zip(inputs, SHAPES[fname].values(), strict=True) if x is not None]
                 out = nonfinite_rows(self.xp, out, rows)
             if compute == dtype:

@@ -1,9 +1,22 @@
-"""The rotation math, written once over an array namespace ``xp``.
+"""The core of the rotation math, written once over an array namespace ``xp``. It holds:
 
-``xp`` is the ``numpy``, ``torch`` or ``jax.numpy`` module itself: the functions here use only what the
-three share (indexing with ``...``, arithmetic, comparisons, ``stack``/``reshape`` with ``axis``,
-``where``, ``sqrt``, ``finfo``). They do no validation and no dtype juggling: the backend modules do
-that once, in :mod:`diffquat._backend`, and then call into here in a floating dtype of at least 32 bits.
+- the operation registry the backends validate and wrap against: :func:`op` and ``SHAPES`` (the
+  trailing shape of every array argument), and the markers :func:`canonical` (``CANONICAL``) and
+  :func:`nonfinite_by_arithmetic` (``NONFINITE_BY_ARITHMETIC``);
+- the quaternion <-> matrix conversions (:func:`quaternion_to_matrix`, :func:`matrix_to_quaternion`,
+  :func:`unit_quaternion_to_matrix`), their written-out tangent and cotangent rules
+  (:func:`derivative_rules`), and :func:`registered_conversions`, through which every backend binds
+  its public conversions and the conversion step of every composite;
+- the quaternion operations the backends expose directly (standardise, normalise, reorder, the
+  uniform sampler) and the helpers the other core modules (``_algebra``, ``_lie``, ``_euler``,
+  ``_representations``, ``_statistics``, ``_fisher``) build on: splitting and joining components,
+  :func:`stack_matrix`, :func:`zero_or_nan`, :func:`computed_once`, :func:`cancelling_factor`.
+
+``xp`` is the ``numpy`` or ``torch`` module itself, or ``jax.numpy`` with a few additions
+(:mod:`diffquat.jax._namespace`): the functions here use only what the three share (indexing with
+``...``, arithmetic, comparisons, ``stack``/``reshape`` with ``axis``, ``where``, ``sqrt``,
+``finfo``). They do no validation and no dtype juggling: the backend modules do that once, in
+:mod:`diffquat._backend`, and then call into here in a floating dtype of at least 32 bits.
 
 Numerical rules every function here follows, so that it is differentiable everywhere and traceable by
 ``torch.compile(fullgraph=True)``, ``torch.func`` and ``jax.jit``:
@@ -22,10 +35,10 @@ from typing import Any, TypeVar
 F = TypeVar("F", bound=Callable[..., Any])
 
 # The conversion step inside a composite (axis-angle or Euler angles to matrix through the quaternion,
-# and back), as ``conversion(xp, x)``: the core formula by default. A backend passes its own evaluation
-# of the same map where it pays (torch: the C or Triton kernels, chosen per call as for its public
-# conversions, see ``diffquat.torch._dispatch``), so that composites are as fast as the conversion
-# itself. Not part of the public signatures: the backend wrappers do not take it.
+# and back), as ``conversion(xp, x)``: the core formula by default. Every backend passes the same
+# thing, its registration of the conversion with its written-out derivative (:func:`derivative_rules`;
+# numpy: the formula itself), so that a composite differentiates its conversion step as the public
+# conversion does. Not part of the public signatures: the backend wrappers do not take it.
 Conversion = Callable[..., Any]
 
 # Trailing shape of every array argument of every public core function, by argument name. The backend
@@ -81,7 +94,7 @@ def unstack_quaternion(xp: Any, q: Any, scalar_first: bool) -> tuple[Any, Any, A
     """:func:`split_quaternion` for a formula that jax differentiates: read with the namespace's
     ``unstack`` where it has one (jax; numpy >= 2.1 reads the same values). Reverse mode transposes
     four slices into four zero-padded copies of the ``(..., 4)`` cotangent summed, and one ``unstack``
-    into one ``stack``: quaternion_to_matrix forward + backward 2x faster at N = 262144."""
+    into one ``stack`` (docs/performance.md, Formula shapes)."""
     unstack = getattr(xp, "unstack", None)
     if unstack is None:
         return split_quaternion(q, scalar_first)
@@ -95,15 +108,7 @@ def join_quaternion(xp: Any, w: Any, x: Any, y: Any, z: Any, scalar_first: bool)
 
 
 def stack_matrix(xp: Any, entries: list[Any]) -> Any:
-    """Nine row-major entries of shape ``batch`` into one ``(*batch, 3, 3)`` array: a single stack, or
-    where the namespace sets ``stack_rows`` (torch's ``quaternion_to_matrix`` under
-    ``torch.compile``), rows of three stacked. Inductor writes a concatenation of more than eight
-    inputs as one strided copy per input, a quarter of a sector per store (on an H100 the
-    ``quaternion_to_matrix`` forward moved 17% of the copy bandwidth), and smaller ones as one kernel
-    that writes whole rows (3.3x faster there). Eager namespaces copy the output once more that way
-    (numpy 1.2x slower), and XLA measured about the same."""
-    if getattr(xp, "stack_rows", False):
-        return xp.stack([xp.stack(entries[i : i + 3], axis=-1) for i in (0, 3, 6)], axis=-2)
+    """Nine row-major entries of shape ``batch`` into one ``(*batch, 3, 3)`` array."""
     flat = xp.stack(entries, axis=-1)
     return xp.reshape(flat, (*flat.shape[:-1], 3, 3))
 
@@ -112,10 +117,10 @@ def computed_once(xp: Any, x: Any) -> Any:
     """``x`` itself, computed once where a compiler would otherwise recompute it in every output.
 
     XLA fuses by recomputation: a value behind a transcendental (cos, sin) that feeds the nine entries
-    of a matrix is evaluated nine times per rotation, in each entry's loop (``axis_angle_to_matrix``
-    ran 2x slower than jaxlie's). A namespace that has ``optimization_barrier`` (the jax backend's)
-    keeps such a value as one array instead; for the others this is the identity, and it changes no
-    value or derivative anywhere."""
+    of a matrix is evaluated nine times per rotation, in each entry's loop (docs/performance.md,
+    Formula shapes). A namespace that has ``optimization_barrier`` (the jax backend's) keeps such a
+    value as one array instead; for the others this is the identity, and it changes no value or
+    derivative anywhere."""
     barrier = getattr(xp, "optimization_barrier", None)
     return x if barrier is None else barrier(x)
 
@@ -135,8 +140,8 @@ def cancelling_factor(xp: Any, x: Any) -> Any:
     """``x`` itself, as a constant of differentiation: only for a factor that cancels out of the
     result, such as the scale a vector is divided by before its norm is taken (``v / s / |v / s|`` is
     ``v / |v|`` for every ``s > 0``). Its derivative terms cancel exactly in theory and to rounding in
-    practice; dropping them saves the backward of the scale (``quaternion_plus`` forward + backward at
-    N = 4096 in jax: the max, the abs and a division of the cotangent). ``stop_gradient`` on the jax
+    practice; dropping them saves the backward of the scale: the maximum, the absolute values and a
+    division of the cotangent (docs/performance.md, Formula shapes). ``stop_gradient`` on the jax
     backend's namespace, ``torch.detach`` on torch, the identity on NumPy."""
     drop = getattr(xp, "stop_gradient", None) or getattr(xp, "detach", None)
     return x if drop is None else drop(x)
@@ -176,9 +181,9 @@ def unit_quaternion_to_matrix(xp: Any, q: Any) -> Any:
     ``(cos(t/2), sin(t/2) axis)`` has norm 1 within an ulp or two. On a unit quaternion the
     normalisation changes the entries by rounding only, and ``w -> R(w / |w|)`` and ``w -> R(w)`` are
     one map on the sphere, so every derivative along it is the same; skipping it saves the largest
-    component, the norm and four divisions per rotation (jax ``so3_exp`` 0.90x the time at N = 4096 and
-    0.75x at 262144, interleaved runs), for one more rounding of the norm in the entries (float32 max
-    error on the shared test cases 3.9e-7 -> 4.4e-7; jaxlie's 4.7e-7)."""
+    component, the norm and four divisions per rotation (docs/performance.md, Formula shapes), for one
+    more rounding of the norm in the entries (float32 max error on the shared test cases 3.9e-7 ->
+    4.4e-7)."""
     return _matrix_of_unit(xp, *unstack_quaternion(xp, q, True))
 
 
@@ -198,47 +203,6 @@ def _matrix_of_unit(xp: Any, w: Any, x: Any, y: Any, z: Any) -> Any:
     )  # fmt: skip
 
 
-# quaternion_to_matrix entry by entry, row-major: R = I + 2 (s1 u_a u_b + s2 u_c u_d) for the unit
-# quaternion u, components (w, x, y, z) = 0..3. Rows of (s1, a, b, s2, c, d).
-_Q2M_TERMS = (
-    (-1.0, 2, 2, -1.0, 3, 3), (1.0, 1, 2, -1.0, 0, 3), (1.0, 1, 3, 1.0, 0, 2),
-    (1.0, 1, 2, 1.0, 0, 3), (-1.0, 1, 1, -1.0, 3, 3), (1.0, 2, 3, -1.0, 0, 1),
-    (1.0, 1, 3, -1.0, 0, 2), (1.0, 2, 3, 1.0, 0, 1), (-1.0, 1, 1, -1.0, 2, 2),
-)  # fmt: skip
-
-
-def quaternion_to_matrix_gathered(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
-    """:func:`quaternion_to_matrix` as one expression over the ``(..., 9)`` entries, each reading its
-    two products' components by constant indices: XLA:GPU compiles it to one loop that writes the
-    matrix row by row (1.2x faster forward than the stack of nine on an H100, where XLA first writes
-    the scale to memory), while XLA:CPU runs the stack faster. The same
-    values: ``2 (s1 u_a u_b + s2 u_c u_d)`` rounds as the core's ``(2 u_a) u_b + (2 u_c) u_d`` (a
-    factor of 2 is exact), and the zero quaternion takes ``1 / |q| = 0`` in the same way."""
-    components = split_quaternion(q, scalar_first)
-    big, nonzero = _unit_scale(xp, *components)
-    # Component by component, as _unit_components: XLA rewrites a division by a broadcast operand into
-    # a product with its reciprocal, which rounds differently (and underflows for huge quaternions).
-    pw, px, py, pz = (c / big for c in components)
-    p = join_quaternion(xp, pw, px, py, pz, scalar_first)
-    inv = _inverse_norm(xp, nonzero, pw * pw + px * px + py * py + pz * pz)
-    u = p * inv[..., None]
-    # component k of (w, x, y, z) sits at k in scalar-first storage, at k - 1 (mod 4) in scalar-last
-    shift = 0 if scalar_first else 3
-    s1, a, b, s2, c, d = (list(column) for column in zip(*_Q2M_TERMS, strict=True))
-
-    def pick(components: list[Any]) -> Any:
-        return u[..., [(k + shift) % 4 for k in components]]
-
-    def constant(values: list[float]) -> Any:
-        # of the batch's rank: jax may be set to refuse implicit rank promotion
-        return xp.reshape(xp.asarray(values, dtype=q.dtype), (1,) * (q.ndim - 1) + (9,))
-
-    sign1, sign2 = constant(s1), constant(s2)
-    base = constant([1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0])
-    flat = base + 2.0 * (sign1 * pick(a) * pick(b) + sign2 * pick(c) * pick(d))
-    return xp.reshape(flat, (*flat.shape[:-1], 3, 3))
-
-
 def _unit_components(xp: Any, q: Any, scalar_first: bool) -> tuple[Any, Any, Any, Any, Any]:
     """``q / |q|`` as components (w, x, y, z), and ``1 / |q|``.
 
@@ -255,8 +219,8 @@ def _unit_components(xp: Any, q: Any, scalar_first: bool) -> tuple[Any, Any, Any
     # big cancels out of both results (q / big / |q / big| and |q / big|^-1 / big), so it is a
     # constant of differentiation: with it held fixed both are the same functions of q, every
     # derivative included, and the backward pass skips the maximum and the divisions' derivatives
-    # in big (jax quaternion_to_matrix forward + backward at N = 4096: XLA fused fourteen divisions
-    # into each of the four components of the cotangent).
+    # in big, which XLA would fuse into each component of the cotangent (docs/performance.md,
+    # Formula shapes).
     big = cancelling_factor(xp, big)
     # Divisions, not a product with 1 / big: that reciprocal is subnormal past ~8.5e37 in float32.
     w, x, y, z = w / big, x / big, y / big, z / big
@@ -281,16 +245,16 @@ def _inverse_norm(xp: Any, nonzero: Any, s2: Any) -> Any:
     return xp.where(nonzero, 1.0 / xp.sqrt(xp.where(nonzero, s2, 1.0)), 0.0)
 
 
-def quaternion_to_matrix_cotangent(xp: Any, q: Any, grad: Any) -> Any:
-    """Reverse-mode derivative of :func:`quaternion_to_matrix` (scalar first): ``dL/dq`` (..., 4) for
-    ``dL/dR`` (..., 3, 3), analytic, for eager backends that would otherwise record and replay the
-    formula's ~40 operations.
+def quaternion_to_matrix_cotangent(xp: Any, q: Any, grad: Any, *, scalar_first: bool = True) -> Any:
+    """Reverse-mode derivative of :func:`quaternion_to_matrix`: ``dL/dq`` (..., 4) for ``dL/dR``
+    (..., 3, 3), both quaternions in the storage order ``scalar_first``; analytic, for eager backends
+    that would otherwise record and replay the formula's ~40 operations.
 
     With ``u = q / |q|``, ``R = I + 2 A(u)`` for the quadratic form ``A`` of :func:`quaternion_to_matrix`,
     so ``G . R = tr G + 2 u^T M u`` with ``M`` the symmetric 4 x 4 matrix linear in ``G`` below, and
     ``g = 2 M u`` is its gradient in ``u``. The normalisation projects out the radial part:
     ``dL/dq = (2 / |q|) (g - (u . g) u)``, 0 for the zero quaternion (``1 / |q|`` taken as 0)."""
-    w, x, y, z, inv = _unit_components(xp, q, True)
+    w, x, y, z, inv = _unit_components(xp, q, scalar_first)
     g00, g01, g02 = grad[..., 0, 0], grad[..., 0, 1], grad[..., 0, 2]
     g10, g11, g12 = grad[..., 1, 0], grad[..., 1, 1], grad[..., 1, 2]
     g20, g21, g22 = grad[..., 2, 0], grad[..., 2, 1], grad[..., 2, 2]
@@ -306,7 +270,12 @@ def quaternion_to_matrix_cotangent(xp: Any, q: Any, grad: Any) -> Any:
     radial = w * gw + x * gx + y * gy + z * gz
     s = 2.0 * inv
     return join_quaternion(
-        xp, s * (gw - radial * w), s * (gx - radial * x), s * (gy - radial * y), s * (gz - radial * z), True
+        xp,
+        s * (gw - radial * w),
+        s * (gx - radial * x),
+        s * (gy - radial * y),
+        s * (gz - radial * z),
+        scalar_first,
     )
 
 
@@ -449,47 +418,6 @@ def _m2q_scale(xp: Any, w: Any, x: Any, y: Any, z: Any) -> Any:
     return xp.where(_negative_canonical(w, x, y, z), -inv, inv)
 
 
-def matrix_to_quaternion_stacked(xp: Any, matrix: Any, *, scalar_first: bool = True) -> Any:
-    """:func:`matrix_to_quaternion` evaluated in another order, for compilers (XLA): the same map, equal
-    to rounding.
-
-    Where the core formula selects each of the four components and then the scale from them, this
-    selects whole ``(..., 4)`` candidates and scales each by one per-rotation scalar. XLA:CPU compiles
-    that into one loop for the scalar and one for the output, where the component-wise form becomes
-    four selection loops and a concatenation, twice as slow (benchmarks/). Evaluated eagerly it costs
-    more passes, so the eager backends keep the core formula."""
-    return _m2q_whole(xp, matrix, scalar_first)[1]
-
-
-def _m2q_whole(xp: Any, matrix: Any, scalar_first: bool) -> tuple[tuple[Any, ...], Any, Any]:
-    """The pivots (of the quarter matrix), the quaternion as one ``(..., 4)`` array, and ``+-1 / |c|``
-    (..., 1) for the candidate ``c`` of the matrix itself: the parts that
-    :func:`matrix_to_quaternion_stacked` and :func:`matrix_to_quaternion_jvp` share. As
-    :func:`_m2q_unit` does, the candidate is divided by its largest component before it is normalised
-    (the scaled norm lies in [1, 2]); the sign is folded into the one per-rotation scale."""
-    pivots, candidates = _m2q_candidates(_quarter(xp, matrix), 0.25)
-    c = _m2q_pick_candidate(xp, pivots, candidates, scalar_first)
-    big = xp.amax(xp.abs(c), axis=-1, keepdims=True)
-    # Component by component: XLA rewrites a division by a broadcast operand into a product with its
-    # reciprocal, and for a component near the largest finite number that reciprocal is subnormal,
-    # which XLA:CPU flushes to zero (the result was NaN).
-    w, x, y, z = (u / big[..., 0] for u in split_quaternion(c, scalar_first))
-    c = join_quaternion(xp, w, x, y, z, scalar_first)
-    scale = _m2q_scale(xp, *split_quaternion(c, scalar_first))[..., None]
-    # c was built from a quarter of the matrix: 1 / |c_matrix| = 1 / (4 big |c / big|). Where that
-    # underflows (entries near the largest finite number) so does the derivative it scales.
-    return pivots, c * scale, scale / (4.0 * big)
-
-
-def _m2q_pick_candidate(
-    xp: Any, pivots: tuple[Any, ...], candidates: list[tuple[Any, Any, Any, Any]], scalar_first: bool
-) -> Any:
-    """The candidate of the largest pivot as one ``(..., 4)`` array (whole candidates selected)."""
-    use01, use0, use2 = _m2q_choice(xp, pivots)
-    stacked = (join_quaternion(xp, *candidate, scalar_first) for candidate in candidates)
-    return _m2q_pick(xp, use01[..., None], use0[..., None], use2[..., None], *stacked)
-
-
 def _m2q_recover_scale(xp: Any, matrix: Any, q: Any) -> tuple[Any, Any, Any, Any]:
     """The choice of :func:`_m2q_choice` and the scale ``+-1 / |c|`` of :func:`_m2q_scale`, read back
     from the result ``q`` (scalar first) instead of rebuilding and renormalising the candidates:
@@ -522,10 +450,10 @@ def _tangent_entries(xp: Any, tangent: Any) -> Any:
     cotangent, so nine entries read become nine padded copies summed, which XLA:CPU evaluates entry by
     entry, all nine expressions for each of the nine outputs. The transpose of an ``unstack`` is a
     ``stack``; rows of three, then three rows, because XLA:CPU fuses a stack of at most eight operands
-    into the loop that computes them (nine flat entries became nine loops and a copy, 2-4x slower
-    below N = 1024). Forward + backward: 1.5x faster at N = 262144, level at N <= 256 (benchmarks/).
-    Only where the namespace has ``unstack`` (jax; numpy >= 2.1 reads the same values); the torch rule
-    is never transposed, and reading the primal matrix this way measured 2x slower forward."""
+    into the loop that computes them, and nine flat entries would become nine loops and a copy
+    (docs/performance.md, Formula shapes). Only where the namespace has ``unstack`` (jax; numpy >= 2.1
+    reads the same values); the torch rule is never transposed, and the primal matrix is read by
+    indexing, which is faster forward."""
     return _Unstacked(xp, tangent) if hasattr(xp, "unstack") else tangent
 
 
@@ -549,29 +477,18 @@ def matrix_to_quaternion_tangent(
     return inv[..., None] * (dc - q * xp.sum(q * dc, axis=-1, keepdims=True))
 
 
-def matrix_to_quaternion_jvp(
-    xp: Any, matrix: Any, tangent: Any, *, scalar_first: bool = True
-) -> tuple[Any, Any]:
-    """:func:`matrix_to_quaternion` and its forward-mode derivative together, ``(q, dq)``: the rule jax
-    linearises, and transposes for reverse mode (see :mod:`diffquat.jax`).
-
-    ``q`` is :func:`matrix_to_quaternion_stacked`'s value, and the tangent shares its choice and
-    scale, which XLA then computes once for both: forward + backward 1.13x faster at N = 262144 than
-    beside a scale of its own, and 2x faster than reading the scale back from ``q`` as
-    :func:`matrix_to_quaternion_tangent` does (benchmarks/)."""
-    pivots, q, inv = _m2q_whole(xp, matrix, scalar_first)
-    _, tangents = _m2q_candidates(_tangent_entries(xp, tangent), 0.0)
-    dc = join_quaternion(xp, *_m2q_select(xp, pivots, tangents), scalar_first)
-    return q, inv * (dc - q * xp.sum(q * dc, axis=-1, keepdims=True))
-
-
-def matrix_to_quaternion_cotangent(xp: Any, matrix: Any, q: Any, grad: Any) -> Any:
-    """Reverse-mode derivative of :func:`matrix_to_quaternion` (scalar first): ``dL/dR`` (..., 3, 3)
-    for ``dL/dq`` (..., 4); the transpose of :func:`matrix_to_quaternion_tangent`.
+def matrix_to_quaternion_cotangent(
+    xp: Any, matrix: Any, q: Any, grad: Any, *, scalar_first: bool = True
+) -> Any:
+    """Reverse-mode derivative of :func:`matrix_to_quaternion`: ``dL/dR`` (..., 3, 3) for ``dL/dq``
+    (..., 4), with ``q`` (the result) and ``dL/dq`` in the storage order ``scalar_first``; the
+    transpose of :func:`matrix_to_quaternion_tangent`.
 
     The cotangent of the selected candidate, ``+-(g - q (q . g)) / |c|``, goes to that candidate only;
     each of its components is a pivot or one of the six sums and differences of off-diagonal entries,
     and those send it on to the matrix entries they are made of."""
+    if not scalar_first:
+        q, grad = xyzw_to_wxyz(xp, q), xyzw_to_wxyz(xp, grad)
     use01, use0, use2, inv = _m2q_recover_scale(xp, matrix, q)
     gc = inv[..., None] * (grad - q * xp.sum(q * grad, axis=-1, keepdims=True))
     gw, gx, gy, gz = split_quaternion(gc, True)
@@ -656,3 +573,60 @@ def quaternions_from_uniform(xp: Any, uniform: Any, *, scalar_first: bool = True
     w, x, y, z = r2 * xp.cos(b), r1 * xp.sin(a), r1 * xp.cos(a), r2 * xp.sin(b)
     q = join_quaternion(xp, w, x, y, z, scalar_first)
     return standardize_quaternion(xp, q, scalar_first=scalar_first)
+
+
+Rule = tuple[Callable[..., Any], Callable[..., Any], Callable[..., Any]]
+
+
+def registered_conversions(register: Callable[[str, Rule], Conversion]) -> dict[str, Conversion]:
+    """``quaternion_to_matrix`` and ``matrix_to_quaternion`` as a backend evaluates them, by name, each
+    ``(xp, x, *, scalar_first=True)``: ``register(name, rule)`` turns one storage order's
+    :func:`derivative_rules` into a function ``(xp, x)`` (torch: an ``autograd.Function``, jax: a
+    ``custom_jvp``, numpy: the forward itself). Every backend binds its public conversions and the
+    conversion step of every composite to these, so all of them reach a conversion the same way."""
+    rules = {order: derivative_rules(order) for order in (True, False)}
+    out: dict[str, Conversion] = {}
+    for name in ("quaternion_to_matrix", "matrix_to_quaternion"):
+        by_order = {order: register(name, rules[order][name]) for order in rules}
+
+        def conversion(xp: Any, x: Any, *, scalar_first: bool = True, _by_order: Any = by_order) -> Any:
+            return _by_order[bool(scalar_first)](xp, x)
+
+        conversion.__name__ = name  # the backends validate arguments by the core function's name
+        out[name] = conversion
+    return out
+
+
+def derivative_rules(scalar_first: bool) -> dict[str, Rule]:
+    """The two conversions with their derivatives written out, in one storage order, as each backend
+    registers them (torch: an ``autograd.Function``; jax: a ``custom_jvp``): ``forward(xp, x)``,
+    ``tangent(xp, x, y, dx)`` and ``cotangent(xp, x, y, gy)``, ``y`` being the forward's result.
+
+    Why the rules: autodiff of :func:`matrix_to_quaternion` carries all four candidates through the
+    selection, twice the work of differentiating the chosen one, and eager torch records and replays
+    :func:`quaternion_to_matrix`'s ~40 operations where its cotangent is ~25 (docs/performance.md)."""
+
+    def q2m(xp: Any, q: Any) -> Any:
+        return quaternion_to_matrix(xp, q, scalar_first=scalar_first)
+
+    def q2m_tangent(xp: Any, q: Any, r: Any, dq: Any) -> Any:
+        return quaternion_to_matrix_tangent(xp, q, dq, scalar_first=scalar_first)
+
+    def q2m_cotangent(xp: Any, q: Any, r: Any, grad: Any) -> Any:
+        return quaternion_to_matrix_cotangent(xp, q, grad, scalar_first=scalar_first)
+
+    def m2q(xp: Any, matrix: Any) -> Any:
+        return matrix_to_quaternion(xp, matrix, scalar_first=scalar_first)
+
+    def m2q_tangent(xp: Any, matrix: Any, q: Any, dm: Any) -> Any:
+        return matrix_to_quaternion_tangent(xp, matrix, q, dm, scalar_first=scalar_first)
+
+    def m2q_cotangent(xp: Any, matrix: Any, q: Any, grad: Any) -> Any:
+        return matrix_to_quaternion_cotangent(xp, matrix, q, grad, scalar_first=scalar_first)
+
+    # the backends validate arguments by the core function's name
+    q2m.__name__, m2q.__name__ = "quaternion_to_matrix", "matrix_to_quaternion"
+    return {
+        "quaternion_to_matrix": (q2m, q2m_tangent, q2m_cotangent),
+        "matrix_to_quaternion": (m2q, m2q_tangent, m2q_cotangent),
+    }

@@ -188,11 +188,10 @@ def _entries(xp: Any, matrix: Any) -> tuple[list[Any], Any]:
 
     Where the namespace has ``unstack`` (jax; numpy >= 2.1), rows and then entries are unstacked, as
     in ``_core._Unstacked``: reverse mode transposes that into stacks, where nine indexed entries
-    become nine zero-padded copies of the matrix (jax forward + backward 1.3x faster at N = 262144
-    than indexing, and 1.4x faster than the copy below, which XLA does not see through). torch's
-    entries are views with a stride of 9, on which its elementwise kernels ran 9-16x slower (atan2
-    the most): one stack copies them into contiguous rows, taken apart by iteration (``unbind``), whose
-    reverse mode is again one stack."""
+    become nine zero-padded copies of the matrix, and XLA does not see through the copy below. torch's
+    entries would be views with a stride of 9, slow for its elementwise operations (atan2 the most):
+    one stack copies them into contiguous rows, taken apart by iteration (``unbind``), whose reverse
+    mode is again one stack (docs/performance.md, Formula shapes)."""
     unstack = getattr(xp, "unstack", None)
     if unstack is not None:
         largest = xp.amax(xp.abs(matrix), axis=(-2, -1))

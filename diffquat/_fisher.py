@@ -174,8 +174,9 @@ def _talbot(xp: Any, lam: Any, order: int) -> tuple[Any, Any, Any]:
 def _lower_toeplitz(xp: Any, u: Any) -> Any:
     """``(..., n) -> (..., n, n)``: the matrix of the truncated product of power series by ``u``,
     ``T[K, k] = u[K - k]`` for ``K >= k`` and 0 above the diagonal, as one matrix product with the 0/1
-    tensor ``[K - k == d]``, built from ``arange`` (a gather by a constant index, or a constant from a
-    Python list of n^3 numbers, measured 10-50x slower in torch eager than the product itself)."""
+    tensor ``[K - k == d]``, built from ``arange``: a gather by a constant index, or a constant from a
+    Python list of n^3 numbers, costs more in torch eager than the product itself (docs/performance.md,
+    Formula shapes)."""
     n = u.shape[-1]
     i = xp.arange(n, dtype=u.dtype, device=getattr(u, "device", None))
     gap = xp.reshape(i, (1, n, 1)) - xp.reshape(i, (1, 1, n)) - xp.reshape(i, (n, 1, 1))

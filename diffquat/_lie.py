@@ -115,8 +115,7 @@ def so3_vee(xp: Any, matrix: Any) -> Any:
 
 # ---------------------------------------------------------------------------------------------------
 # exp and log: the maps of axis_angle_to_matrix and matrix_to_axis_angle, under the names Lie users
-# look for. One implementation: these call those, with the same conversion step (so the torch
-# backend's kernels serve both names alike).
+# look for. One implementation: these call those, with the same conversion step.
 
 
 # NaN or inf reaches every component of the quaternion through the angle, and every entry from there.
@@ -184,16 +183,6 @@ def _truncated(coefficients: tuple[float, ...], eps: float) -> tuple[float, ...]
         if abs(coefficients[n]) * SERIES_BELOW**n <= 0.25 * eps * abs(coefficients[0]):
             return coefficients[:n]
     raise AssertionError("the series tables are too short for this dtype")  # pragma: no cover
-
-
-def series_table(eps: float) -> tuple[list[float], tuple[int, int, int]]:
-    """The series of the Jacobians' coefficients as the C kernels read them (``_kernels.c``): the
-    threshold ``SERIES_BELOW``, then the coefficients of ``(1 - cos t) / t^2``, ``(t - sin t) / t^3``
-    and the inverse's ``r``, each truncated for a dtype of machine epsilon ``eps`` as :func:`_series`
-    truncates it; and how many of each."""
-    tables = [_truncated(c, eps) for c in (_A_SERIES, _B_SERIES, _C_SERIES)]
-    a, b, c = (len(table) for table in tables)
-    return [SERIES_BELOW, *(c for table in tables for c in table)], (a, b, c)
 
 
 def _series(xp: Any, u: Any, coefficients: tuple[float, ...]) -> Any:
@@ -264,11 +253,10 @@ def _assemble(xp: Any, omega: Any, p: Any, q: Any, r: Any) -> Any:
     """``p I + q hat(w) + r w w^T``, shape ``(..., 3, 3)``; ``q`` an array or a number.
 
     Entry by entry, not as a broadcast outer product ``(r w)[..., :, None] * w[..., None, :]``: jax's
-    reverse mode of that is a reduction over a broadcast axis, which XLA:CPU ran 15x slower than the
-    transposed stack of nine entries (forward + backward at N = 4096: 1.2 ms against 74 us). The
-    callers pass coefficients marked ``computed_once``: XLA fused them (sines, series) into each of the
-    nine entries and their cotangents, recomputing them there (forward + backward of J_l at N = 4096
-    3x slower, behind jaxlie's)."""
+    reverse mode of that is a reduction over a broadcast axis, which XLA:CPU runs far slower than the
+    transposed stack of nine entries. The callers pass coefficients marked ``computed_once``: XLA would
+    otherwise fuse them (sines, series) into each of the nine entries and their cotangents,
+    recomputing them there (docs/performance.md, Formula shapes)."""
     x, y, z = _components(xp, omega)
     rx, ry = r * x, r * y
     # each product of the symmetric part once: torch's eager time at small N is its number of operations
@@ -364,8 +352,8 @@ def so3_plus(
     delta: Any,
     *,
     side: str = "right",
-    # the normalising conversion, not exp's unit one: with that, XLA:CPU fused the nine entries into
-    # the product and ran jax's so3_plus 3x slower at N = 64 (44 us against 15 us; 1.3x at 4096)
+    # the normalising conversion, not exp's unit one: with that, XLA:CPU fuses the nine entries into
+    # the product (docs/performance.md, Formula shapes)
     to_matrix: Conversion = quaternion_to_matrix,
 ) -> Any:
     """A rotation matrix perturbed by a rotation vector: ``R exp(d)`` (``side="right"``) or
@@ -386,11 +374,10 @@ def so3_plus(
     # Non-finite rows by arithmetic: a NaN or an infinity in delta makes the step's whole quaternion NaN
     # (through the angle), but one in R reaches only a row (or a column) of the product, so
     # zero_or_nan of R (0 where R is finite, NaN where it is not) is added to the quaternion, a
-    # constant of differentiation. Cheaper than
-    # that selection after the product (a pass over the inputs and one over the output): forward at
-    # N = 262144 1.2-1.4x faster in torch eager, at N = 4096 1.3x in jax (interleaved medians). Added
-    # to R instead, it cost an extra pass over R before the product (1.1x and 1.0x); on the quaternion,
-    # a delta shared by a batch of R is exponentiated once per R (the same values to rounding).
+    # constant of differentiation: cheaper than the selection after the product (a pass over the
+    # inputs and one over the output), and than adding it to R (an extra pass over R before the
+    # product; docs/performance.md, Formula shapes). On the quaternion, a delta shared by a batch of
+    # R is exponentiated once per R (the same values to rounding).
     poison = cancelling_factor(xp, zero_or_nan(xp, matrix, 2))
     q, poison = match_rank(xp, axis_angle_to_quaternion(xp, delta), poison[..., None])
     step = to_matrix(xp, computed_once(xp, q + poison))
@@ -457,8 +444,8 @@ def _unit(xp: Any, q: Any, scalar_first: bool) -> tuple[Any, Any]:
 def _product(p: tuple[Any, Any], q: tuple[Any, Any], xp: Any) -> tuple[Any, Any]:
     """The Hamilton product of quaternions given as (scalar ``(..., 1)``, vector ``(..., 3)``):
     ``(pw qw - pv . qv, pw qv + qw pv + pv x qv)``. On the vectors as arrays, a cross product and a
-    sum, not sixteen products of components: fewer operations for torch eager, and XLA fused it
-    (``quaternion_plus`` forward + backward at N = 4096 1.4x faster than through ``hamilton``). As in
+    sum, not sixteen products of components: fewer operations for torch eager, and XLA fuses it
+    better than ``hamilton``'s components (docs/performance.md, Formula shapes). As in
     ``hamilton``, ``pw qv + qw pv`` is one parenthesis, so that ``p* p`` has an exactly zero vector
     part."""
     pw, pv = p

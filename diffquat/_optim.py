@@ -66,8 +66,8 @@ def matrix_tangent_gradient(xp: Any, matrix: Any, grad: Any) -> Any:
 
     Entry x is ``(R^T G)_21 - (R^T G)_12 = sum_k (G_k1 R_k2 - G_k2 R_k1)``, and so on: the sum over
     the rows ``k`` of ``G_k x R_k``, the cross product of the two matrices' rows. Two whole-array
-    operations, where a batched matrix product of 3x3 matrices is slow in eager torch (137 us for a
-    thousand, measured: one small product per matrix)."""
+    operations, where a batched matrix product of 3x3 matrices is slow in eager torch (one small
+    product per matrix; docs/performance.md, Formula shapes)."""
     return xp.sum(xp.linalg.cross(grad, matrix), axis=-2)
 
 
@@ -94,12 +94,8 @@ def tangent_gradient(xp: Any, param: Any, grad: Any, kind: str, scalar_first: bo
     return quaternion_tangent_gradient(xp, param, grad, scalar_first)
 
 
-# The exponential of a rotation vector and the product with it, on (..., 1) scalar and (..., 3) vector
-# parts: about 15 whole-array operations where the component forms of ``axis_angle_to_quaternion``,
-# ``hamilton`` and ``quaternion_plus`` take a hundred. An optimiser's step runs them eagerly on every
-# parameter, where each operation costs its dispatch: measured in eager torch on one thread, 170 us
-# against ``quaternion_plus``'s 820 us for 32 rotations, 16 ms against 38 ms for 100 000. The values
-# agree to a few ulps (tested).
+# The exponential of a rotation vector on (..., 1) scalar and (..., 3) vector parts, for the transport
+# of the optimisers' moments: a few whole-array operations, run eagerly on every parameter each step.
 
 
 def exp_quaternion(xp: Any, delta: Any) -> tuple[Any, Any]:
@@ -113,19 +109,6 @@ def exp_quaternion(xp: Any, delta: Any) -> tuple[Any, Any]:
     differentiates through an update, is the exact ``(0, I / 2)`` there."""
     t = _algebra.safe_norm(xp, xp.sum(delta * delta, axis=-1, keepdims=True))
     return xp.cos(0.5 * t), (0.5 * xp.sinc(t * (0.5 / math.pi))) * delta
-
-
-def quaternion_plus(xp: Any, q: Any, delta: Any, scalar_first: bool, normalize: bool = True) -> Any:
-    """``q exp(delta)``, ``(..., 4)`` in ``q``'s order, for ``q`` of norm near 1 (an optimiser's
-    parameters, checked when they are added): ``quaternion_plus``'s value. ``normalize``: divided by
-    its norm, so that the rounding of many steps does not add up (not needed before
-    ``quaternion_to_matrix``, which reads any norm)."""
-    w1, v1 = _parts(q, scalar_first)
-    w2, v2 = exp_quaternion(xp, delta)
-    w = w1 * w2 - xp.sum(v1 * v2, axis=-1, keepdims=True)
-    v = (w1 * v2 + w2 * v1) + xp.linalg.cross(v1, v2)
-    out = xp.concat([w, v] if scalar_first else [v, w], axis=-1)
-    return out / xp.sqrt(xp.sum(out * out, axis=-1, keepdims=True)) if normalize else out
 
 
 def transport(xp: Any, delta: Any, vector: Any) -> Any:
@@ -147,9 +130,8 @@ def retract(dq: Any, xp: Any, param: Any, delta: Any, kind: str, scalar_first: b
     earlier step: in float32 its ``|R^T R - I|`` grew to 2e-5 in 1e4 steps (measured), this one stays
     at the first step's few ulps. Quaternions are normalised after each product likewise."""
     if kind == MATRIX:
-        q = quaternion_plus(xp, dq.matrix_to_quaternion(param), delta, True, normalize=False)
-        return dq.quaternion_to_matrix(q)
-    return quaternion_plus(xp, param, delta, scalar_first)
+        return dq.quaternion_to_matrix(dq.quaternion_plus(dq.matrix_to_quaternion(param), delta))
+    return dq.quaternion_plus(param, delta, scalar_first=scalar_first)
 
 
 def adam(

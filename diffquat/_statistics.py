@@ -168,8 +168,8 @@ def _pick(xp: Any, mask: Any, x: Any) -> Any:
 def repeat(xp: Any, count: int, step: Callable[[Any], Any], state: Any) -> Any:
     """``step`` applied ``count`` times (a number fixed in advance, never read from the data) to
     ``state``. A Python loop, except where the namespace has ``diffquat_repeat`` (jax's runs
-    ``lax.fori_loop``): XLA then compiles the step once instead of ``count`` unrolled copies (the
-    median's forward compiled in half the time)."""
+    ``lax.fori_loop``): XLA then compiles the step once instead of ``count`` unrolled copies
+    (docs/performance.md, Formula shapes)."""
     loop = getattr(xp, "diffquat_repeat", None)
     if loop is not None:
         return loop(count, step, state)

@@ -104,14 +104,20 @@ _B = Backend(
 )
 
 
+# The conversions as every backend binds them (diffquat._core.registered_conversions); NumPy has no
+# derivatives to register, so each is its formula.
+_CONVERSIONS = _core.registered_conversions(lambda name, rule: rule[0])
+_Q2M, _M2Q = _CONVERSIONS["quaternion_to_matrix"], _CONVERSIONS["matrix_to_quaternion"]
+
+
 @documented(_core.quaternion_to_matrix)
 def quaternion_to_matrix(q: ArrayLike, *, scalar_first: bool = True) -> NDArray[Any]:
-    return _B(_core.quaternion_to_matrix, q, scalar_first=scalar_first)
+    return _B(_Q2M, q, scalar_first=scalar_first)
 
 
 @documented(_core.matrix_to_quaternion)
 def matrix_to_quaternion(matrix: ArrayLike, *, scalar_first: bool = True) -> NDArray[Any]:
-    return _B(_core.matrix_to_quaternion, matrix, scalar_first=scalar_first)
+    return _B(_M2Q, matrix, scalar_first=scalar_first)
 
 
 @documented(_core.standardize_quaternion)
@@ -179,14 +185,14 @@ def axis_angle_to_matrix(axis_angle: ArrayLike) -> NDArray[Any]:
 
 @documented(_algebra.matrix_to_axis_angle)
 def matrix_to_axis_angle(matrix: ArrayLike) -> NDArray[Any]:
-    return _B(_algebra.matrix_to_axis_angle, matrix)
+    return _B(_algebra.matrix_to_axis_angle, matrix, to_quaternion=_M2Q)
 
 
 @documented(_euler.euler_angles_to_matrix)
 def euler_angles_to_matrix(
     angles: ArrayLike, convention: EulerConvention, *, degrees: bool = False
 ) -> NDArray[Any]:
-    return _B(_euler.euler_angles_to_matrix, angles, convention=convention, degrees=degrees)
+    return _B(_euler.euler_angles_to_matrix, angles, convention=convention, degrees=degrees, to_matrix=_Q2M)
 
 
 @documented(_euler.matrix_to_euler_angles)
@@ -301,17 +307,17 @@ def so3_exp(omega: ArrayLike) -> NDArray[Any]:
 
 @documented(_lie.so3_log)
 def so3_log(matrix: ArrayLike) -> NDArray[Any]:
-    return _B(_lie.so3_log, matrix)
+    return _B(_lie.so3_log, matrix, to_quaternion=_M2Q)
 
 
 @documented(_lie.so3_plus)
 def so3_plus(matrix: ArrayLike, delta: ArrayLike, *, side: Side = "right") -> NDArray[Any]:
-    return _B(_lie.so3_plus, matrix, delta, side=side)
+    return _B(_lie.so3_plus, matrix, delta, side=side, to_matrix=_Q2M)
 
 
 @documented(_lie.so3_minus)
 def so3_minus(matrix1: ArrayLike, matrix2: ArrayLike, *, side: Side = "right") -> NDArray[Any]:
-    return _B(_lie.so3_minus, matrix1, matrix2, side=side)
+    return _B(_lie.so3_minus, matrix1, matrix2, side=side, to_quaternion=_M2Q)
 
 
 @documented(_lie.quaternion_plus)
@@ -408,7 +414,7 @@ def matrix_fisher_sample(
 def rotation_mean(
     matrices: ArrayLike, weights: ArrayLike | None = None, *, method: MeanMethod = "chordal"
 ) -> NDArray[Any]:
-    return _B(_stats.rotation_mean, matrices, weights, method=method)
+    return _B(_stats.rotation_mean, matrices, weights, method=method, to_quaternion=_M2Q, to_matrix=_Q2M)
 
 
 @documented(_stats.quaternion_mean)

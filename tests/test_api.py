@@ -8,6 +8,7 @@ import itertools
 import subprocess
 import sys
 import typing
+from pathlib import Path
 from types import ModuleType
 
 import numpy as np
@@ -38,14 +39,12 @@ OWN_KEYWORDS = {
     "matrix_fisher_sample": (RANDOM_SOURCE,),
     "symmetry_group": (FACTORY_KEYWORDS,),
 }
-# A backend's own switches, public but no rotation function: jax's C-kernel switch (tests/test_jax_deploy.py).
-SWITCHES: dict[str, set[str]] = {"numpy": set(), "torch": set(), "jax": set()}
 
 
 def public(name: str) -> dict[str, inspect.Signature]:
     """The rotation functions of a backend: its ``__all__`` but its own switches."""
     module = importlib.import_module(f"diffquat.{name}")
-    return {n: inspect.signature(getattr(module, n)) for n in module.__all__ if n not in SWITCHES[name]}
+    return {n: inspect.signature(getattr(module, n)) for n in module.__all__}
 
 
 def test_import_diffquat_imports_neither_torch_nor_jax() -> None:
@@ -132,12 +131,18 @@ def table_inputs(op: Op) -> list[np.ndarray]:
     return list(op.inputs(uniform_quaternions(3, seed=0)))
 
 
-def test_complex_input_raises_type_error(op: Op, backend: Backend) -> None:
+def test_complex_and_string_input_raise_type_error(op: Op, backend: Backend) -> None:
+    """A complex array, a string or an object that is no array: a TypeError naming the function and
+    the argument, on every backend (not the framework's own error, which names neither)."""
     for i, argname in enumerate(list(SHAPES[op.name])[: len(table_inputs(op))]):
         args: list[object] = [backend.array(x, "float64") for x in table_inputs(op)]
         args[i] = typed(backend, table_inputs(op)[i], "complex64")
         with pytest.raises(TypeError, match=rf"{op.name}: expected {argname} with a real floating-point"):
             op(backend.module, *args)
+        for bad in ("1.0", object()):
+            args[i] = bad
+            with pytest.raises(TypeError, match=rf"^{op.name}: expected {argname} "):
+                op(backend.module, *args)
 
 
 DEFAULT_FLOAT = {"numpy": "float64", "torch": "float32", "jax": "float64"}  # jax: x64 is on (conftest)
@@ -319,3 +324,16 @@ def test_literal_aliases_list_exactly_what_the_functions_accept() -> None:
     import diffquat
 
     assert diffquat.EulerConvention is _types.EulerConvention
+
+
+def test_the_design_pages_layout_is_the_tree() -> None:
+    """docs/design.md's "Layout of the code" lists every module of the package, and every path it
+    lists exists: a reader finds each map's one place from there."""
+    root = Path(__file__).resolve().parents[1]
+    text = (root / "docs" / "design.md").read_text()
+    block = text.split("## Layout of the code", 1)[1].split("```", 2)[1]
+    listed = {line.split()[0] for line in block.splitlines() if line.strip()}
+    for path in listed:
+        assert (root / path).exists(), f"docs/design.md lists {path}, which is not in the tree"
+    modules = {str(p.relative_to(root)) for p in (root / "diffquat").rglob("*.py")}
+    assert modules <= listed, f"missing from docs/design.md's layout: {sorted(modules - listed)}"

@@ -14,9 +14,10 @@ import pytest
 ROOT = Path(__file__).resolve().parent.parent
 
 
-# The two conversions (the kernels' paths, the roofline, the compiled methods), and of the Lie
-# functions one of each kind of input (a vector, with a float64 reference of its own; a packed pair,
-# with a peer that reorders it): every path of the report, in a fraction of the time of all of them.
+# The two conversions (the autograd.Function and custom_jvp paths, the roofline, the compiled methods,
+# the N = 1 overhead table), and of the Lie functions one of each kind of input (a vector, with a
+# float64 reference of its own; a packed pair, with a peer that reorders it): every path of the report,
+# in a fraction of the time of all of them.
 QUICK_OPS = (
     "quaternion_to_matrix",
     "matrix_to_quaternion",
@@ -44,6 +45,11 @@ def test_quick_benchmark_writes_results(tmp_path: Path) -> None:
     for row in ("| diffquat torch eager |", "| diffquat jax.jit |", "| roofline (copy of the same bytes) |"):
         assert row in text
     assert "### Accuracy on the shared test cases" in text
+    assert "### Cells below 1.0x" in text
+    assert "## Per-call overhead at N = 1 (validation and dispatch)" in text
+    for backend in ("torch eager, forward", "jax eager, forward", "jax.jit, forward", "numpy, forward"):
+        assert f"| quaternion_to_matrix | {backend} |" in text
+    assert "cpu_kernels" not in text and "C kernels" not in text
     assert (tmp_path / "results.png").stat().st_size > 0
 
 
@@ -136,6 +142,7 @@ def test_gpu_benchmark_runs_and_renders_into_results(tmp_path: Path) -> None:
         )
         assert all(t["median_s"] > 0 for t in timings.values())
         for order in ("scalar-first", "scalar-last"):
+            # the operations (on a GPU: the launched kernels) of one diffquat torch eager call
             assert gpu["ops"][name]["kernels"][order]["forward"], "no operation counted"
     assert gpu["copy_bandwidth"] > 0
     text = (tmp_path / "RESULTS.md").read_text()

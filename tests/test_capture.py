@@ -1,6 +1,6 @@
 """Graph capture on torch: a model traced or exported with one input computes, on another input, what
-eager computes (issue: the C kernels write through a raw pointer, which a tracer records as a
-constant; diffquat/torch/_dispatch.py takes the formula under every capture).
+eager computes (eager takes the conversions' autograd.Functions, every capture the core formula:
+diffquat/torch/_custom.py, ``capturing``).
 
 Every row of the table (every public function, each keyword variant) and every ``RotationHead`` is
 captured by ``torch.jit.trace`` (and that trace scripted into a module, saved and loaded, the way
@@ -8,9 +8,8 @@ TorchScript deploys), ``torch.export``, ``make_fx`` and ``torch.fx.symbolic_trac
 then called on another. The four conversions and the heads whose maps have ONNX operators export with
 both ONNX exporters and run in onnxruntime; the 9D and 10D heads refuse with a message that names them.
 
-Inputs are float64 so that the capture (the formula) and eager (the C kernels on the CPU) agree to a few
-ulps of float64 whatever the machine: both evaluate one map, to rounding (tests/test_paths.py bounds
-each against a reference); 1e-12 is about 5000 ulps of the outputs (all of size <= ~10) and a wrong
+Inputs are float64 so that the capture and eager agree to a few ulps of float64 whatever the machine
+(a compiler may fuse and round differently); 1e-12 is about 5000 ulps of the outputs (all of size <= ~10) and a wrong
 capture is off by O(1).
 """
 

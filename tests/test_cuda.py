@@ -1,5 +1,5 @@
-"""On a CUDA device (skipped without one; run on a GPU machine by hand, CI has none): the Triton
-kernels and every capture of them compute what the float64 reference does, and the Lie calculus, the
+"""On a CUDA device (skipped without one; run on a GPU machine by hand, CI has none): the conversions
+(eager, their Functions) and every capture of them compute what the float64 reference does, and the Lie calculus, the
 means, the symmetric distance, the heads and the optimisers run on the device and agree with the CPU.
 Every float32 result is compared with a float64 reference at a bound stated in ulps, never with
 another float32 evaluation."""
@@ -42,8 +42,8 @@ def _expected_matrices(q: np.ndarray) -> np.ndarray:
     return Rotation.from_quat(q, scalar_first=True).as_matrix()
 
 
-def test_triton_conversions_and_their_captures_equal_the_float64_reference() -> None:
-    """Eager (the Triton kernels), ``torch.jit.trace``, ``torch.export`` and ``torch.compile`` on the
+def test_conversions_and_their_captures_equal_the_float64_reference() -> None:
+    """Eager (the Functions), ``torch.jit.trace``, ``torch.export`` and ``torch.compile`` on the
     device: each traced with one input and called with another, each within F32 of scipy in float64."""
     q0, q1 = _quaternions(1000, 0), _quaternions(1000, 1)
     m1 = _expected_matrices(q1)
@@ -69,9 +69,8 @@ def test_triton_conversions_and_their_captures_equal_the_float64_reference() -> 
         np.testing.assert_allclose(q, expected_q, atol=F32, rtol=0, err_msg=name)
 
 
-def test_triton_backward_equals_float64_autograd() -> None:
-    """The backward kernels (and the double backward's fallback) against float64 autograd of the
-    core formula on the CPU: gradients of size ~1 per unit cotangent, within 32 ulps of 1."""
+def test_device_backward_equals_float64_autograd() -> None:
+    """The conversions' cotangents on the device against float64 on the CPU: gradients of size ~1 per unit cotangent, within 32 ulps of 1."""
     q = _quaternions(512, 2)
     cot = np.random.default_rng(3).normal(size=(512, 3, 3))
     device = _cuda(q).requires_grad_(True)

@@ -2,20 +2,11 @@
 conventions are on the documentation's Conventions page. Every function is traceable by ``jit``,
 ``vmap``, ``grad`` and ``jacfwd``/``jacrev``, runs under ``shard_map``, ``pmap`` and sharded ``jit``,
 and exports with ``jax.export`` (the exported program is plain StableHLO: it runs where diffquat is
-not installed).
-
-One switch of its own, ``cpu_kernels`` (off by default): ``matrix_to_quaternion``,
-``matrix_to_axis_angle`` and ``so3_log``, the four SO(3) Jacobians and ``quaternion_plus`` on the CPU
-through diffquat's C kernels, called as XLA custom calls."""
+not installed)."""
 
 from __future__ import annotations
 
 import functools
-import importlib
-import os
-import warnings
-from collections.abc import Callable
-from types import TracebackType
 from typing import Any
 
 import jax
@@ -30,14 +21,13 @@ from .. import _statistics as _stats
 from .._backend import Backend, documented, shape_tuple
 from .._public import public_dir as _public_dir
 from .._types import EulerConvention, MeanMethod, Rotation6DLayout, Side
-from ._custom import custom_derivative, custom_jvp_rule
+from ._custom import custom_derivative
 from ._namespace import XP
 
 __all__ = [
     "axis_angle_to_matrix",
     "axis_angle_to_quaternion",
     "bingham_nll",
-    "cpu_kernels",
     "euler_angles_to_matrix",
     "euler_angles_to_quaternion",
     "fit_rotation",
@@ -92,7 +82,16 @@ def _convert(fname: str, argname: str, x: Any, scalar: bool) -> Any:
     # A Python number for a scalar argument stays one, weakly typed in jax's promotion.
     if scalar and isinstance(x, int | float) and not isinstance(x, bool):
         return x
-    return jnp.asarray(x)
+    # Strings, bytes and other objects that are no numbers: jax's own error names no diffquat function
+    # (and numpy parses a numeric string where jax refuses it), so the refusal is diffquat's.
+    if isinstance(x, str | bytes):
+        raise TypeError(f"{fname}: expected {argname} to be an array, got {type(x).__name__}")
+    try:
+        return jnp.asarray(x)
+    except (TypeError, ValueError) as error:
+        raise TypeError(
+            f"{fname}: expected {argname} to be an array, got {type(x).__name__}: {error}"
+        ) from error
 
 
 _B = Backend(
@@ -109,192 +108,24 @@ _B = Backend(
 )
 
 
-def _q2m_gathered(scalar_first: bool) -> Callable[[Any, Array], Array]:
-    """:func:`diffquat._core.quaternion_to_matrix_gathered` in one order, differentiated as the core
-    formula (a ``custom_jvp`` whose rule is the stack of nine's own ``jvp``, the same values): the
-    gathered form's reverse mode is a scatter-add, 15x slower on an H100 than the stack's."""
-
-    def forward(xp: Any, q: Array) -> Array:
-        return _core.quaternion_to_matrix_gathered(xp, q, scalar_first=scalar_first)
-
-    def jvp(xp: Any, q: Array, dq: Array) -> tuple[Array, Array]:
-        return jax.jvp(lambda x: _core.quaternion_to_matrix(xp, x, scalar_first=scalar_first), (q,), (dq,))
-
-    return custom_jvp_rule(forward, jvp)
-
-
-_Q2M_GATHERED = {order: _q2m_gathered(order) for order in (True, False)}
-
-
-def _quaternion_to_matrix(xp: Any, q: Array, *, scalar_first: bool = True) -> Array:
-    """The core formula in the form that the platform compiles better, chosen when ``jit`` lowers for
-    a platform (the other is not lowered): the stack of nine entries on the CPU, the gathered entries
-    elsewhere (the same values). On an H100 the gathered forward is 1.2x faster, as fast as jaxlie's;
-    derivatives are the stack's on every platform."""
-    gathered = _Q2M_GATHERED[bool(scalar_first)]
-    return jax.lax.platform_dependent(
-        q,
-        cpu=lambda x: _core.quaternion_to_matrix(xp, x, scalar_first=scalar_first),
-        default=lambda x: gathered(xp, x),
-    )
-
-
-_quaternion_to_matrix.__name__ = "quaternion_to_matrix"  # the backend validates by the core's name
+# The conversions as every backend binds them (diffquat._core.registered_conversions): matrix_to_quaternion
+# with its tangent rule, a custom_jvp (XLA's own derivative of the formula carries all four candidates
+# through the selection, about twice the work forward + backward), quaternion_to_matrix as its formula,
+# whose autodiff XLA compiles as well as the rule's transpose.
+_CONVERSIONS = _core.registered_conversions(
+    lambda name, rule: custom_derivative(rule[0], rule[1]) if name == "matrix_to_quaternion" else rule[0]
+)
+_Q2M, _M2Q = _CONVERSIONS["quaternion_to_matrix"], _CONVERSIONS["matrix_to_quaternion"]
 
 
 @documented(_core.quaternion_to_matrix)
 def quaternion_to_matrix(q: ArrayLike, *, scalar_first: bool = True) -> Array:
-    return _B(_quaternion_to_matrix, q, scalar_first=scalar_first)
-
-
-# With its derivative written out (only the picked candidate is differentiated): XLA's own derivative
-# of the formula carries all four candidates through the selection, about twice the work forward +
-# backward (benchmarks/). The forward is the core formula in the order that XLA compiles best
-# (whole-candidate selection; twice as fast forward, and 1.3x forward + backward, at N = 262144).
-# One per storage order, each built in its order: a reindexing of the (..., 4) result after the
-# custom derivative measured 5x slower forward at N = 262144 (XLA then materialises each of the four
-# candidates as an array of its own before the reindexing). The rule computes the result with the
-# tangent (_core.matrix_to_quaternion_jvp: the core formula's scale, shared), so a differentiated
-# call's value may differ from a plain call's in the last bit.
-def _m2q_in_order(scalar_first: bool) -> Any:
-    def forward(xp: Any, matrix: Array) -> Array:
-        return _core.matrix_to_quaternion_stacked(xp, matrix, scalar_first=scalar_first)
-
-    def jvp(xp: Any, matrix: Array, dm: Array) -> tuple[Array, Array]:
-        return _core.matrix_to_quaternion_jvp(xp, matrix, dm, scalar_first=scalar_first)
-
-    return custom_jvp_rule(forward, jvp)
-
-
-_M2Q = {order: _m2q_in_order(order) for order in (True, False)}
-
-
-# The C kernels as XLA custom calls (_xla.py), where the extension was built (pyproject.toml builds it
-# wherever a C compiler is found) and jax can key its caches on the switch (make_user_context).
-def _load_kernels() -> Any:
-    if not hasattr(jax, "make_user_context"):
-        return None  # an older jax: a flip of the switch could not reach jit's caches
-    try:
-        return importlib.import_module("._xla", __name__)
-    except ImportError:  # the extension was not built
-        return None
-
-
-_xla = _load_kernels()
-
-_ENVIRONMENT = "DIFFQUAT_JAX_CPU_KERNELS"
-
-
-def _from_environment() -> bool:
-    value = os.environ.get(_ENVIRONMENT, "0").strip().lower()
-    if value not in ("0", "1", "false", "true", "off", "on", "no", "yes", ""):
-        raise ValueError(f"{_ENVIRONMENT} must be 1 (on) or 0 (off), got {value!r}")
-    return value in ("1", "true", "on", "yes")
-
-
-# The state of the switch: a jax user context, whose value is part of the key of jax's tracing,
-# lowering and compilation caches (as jax's own options are): a function traced, or compiled, with
-# the switch in one state is traced and compiled again when it is called in the other.
-_KERNELS_ON: Any = None
-if _xla is not None:
-    _user_context: Callable[[bool], Any] = jax.make_user_context  # untyped in jax
-    _KERNELS_ON = _user_context(_from_environment())
-
-
-class _Restore:
-    """What :func:`cpu_kernels` returns: a context manager that puts the previous setting back."""
-
-    def __init__(self, previous: bool | None) -> None:
-        self._previous = previous
-
-    def __enter__(self) -> None:
-        return None
-
-    def __exit__(
-        self, kind: type[BaseException] | None, error: BaseException | None, trace: TracebackType | None
-    ) -> None:
-        if _KERNELS_ON is not None and self._previous is not None:
-            _KERNELS_ON.set_global(self._previous)
-
-
-def cpu_kernels(enabled: bool = True) -> _Restore:
-    """Turn the C kernels on the CPU on or off (off by default): ``cpu_kernels(True)`` for the rest of
-    the process, or for a block::
-
-        with diffquat.jax.cpu_kernels():          # or cpu_kernels(True) / cpu_kernels(False)
-            q = jax.jit(diffquat.jax.matrix_to_quaternion)(matrices)   # (..., 3, 3) -> (..., 4)
-
-    On, ``matrix_to_quaternion``, the four SO(3) Jacobians (``so3_left_jacobian``,
-    ``so3_right_jacobian`` and their inverses) and ``quaternion_plus`` (forward and reverse mode), and
-    the quaternion step of ``matrix_to_axis_angle`` and ``so3_log``, call diffquat's C kernels
-    (``diffquat/_kernels.c``, the torch backend's) as XLA custom calls wherever ``jit`` lowers for the
-    CPU: one pass over memory each way, where XLA runs the formula as 7 to 21 small loops (and, from
-    some 16 rotations on, on its thread pool): 1.2-4.8x faster at N = 64, 1.0-5.3x at N = 4096
-    (benchmarks/LIE.md and RESULTS.md). The values are the formula's (the same operations, to a few
-    ulps); other platforms, and dtypes other than float32 and float64, keep the formula. Off, every
-    platform runs the formula, and every compiled program is plain StableHLO.
-
-    The switch is process-wide, like ``jax.config.update``: calling it sets it at once, and as a
-    context manager it restores the previous setting when the block exits. It is read when a function
-    is traced, and it is part of the key of jax's caches (``jax.make_user_context``): a function that
-    ``jit`` traced or compiled in one state is traced and compiled again when it runs in the other,
-    never reusing the other's program (so each flip recompiles every ``jit`` function at its next call;
-    set it once, or around a block, not in a loop). Where a function is traced decides, not where it
-    is called: ``jit`` of a function that enters the block itself traces with the kernels.
-
-    Exported programs never call the kernels. ``jax.export`` refuses custom calls that have no
-    compatibility guarantee, and an artefact that called them would run only in a process that
-    imported diffquat.jax: a program lowered for ``jax.export`` takes the formula on the CPU too,
-    whatever the switch says. Without the C extension (no C compiler at install) or on a jax without
-    ``jax.make_user_context``, turning it on warns and changes nothing.
-
-    The environment variable ``DIFFQUAT_JAX_CPU_KERNELS=1`` at import turns it on from the start.
-
-    Args:
-        enabled: whether the kernels are on (default ``True``).
-    """
-    if _KERNELS_ON is None:
-        if enabled:
-            warnings.warn(
-                "diffquat.jax.cpu_kernels(True) has no effect: the C extension is not built, or this "
-                "jax has no make_user_context; the formula runs on the CPU",
-                RuntimeWarning,
-                stacklevel=2,
-            )
-        return _Restore(None)
-    previous = bool(_KERNELS_ON.get_global())
-    _KERNELS_ON.set_global(bool(enabled))
-    return _Restore(previous)
-
-
-def _kernels_on() -> bool:
-    return _KERNELS_ON is not None and bool(_KERNELS_ON.value)
-
-
-def _on_the_cpu(kernel: Callable[..., Array], elsewhere: Callable[..., Array], *arrays: Array) -> Array:
-    """``kernel`` (the C kernels, _xla.py) of ``arrays`` where ``jit`` lowers for the CPU and
-    ``elsewhere`` on other platforms (the branch not chosen is not lowered), while :func:`cpu_kernels`
-    is on; ``elsewhere`` on every platform while it is off (the default)."""
-    if not _kernels_on():
-        return elsewhere(*arrays)
-    return jax.lax.platform_dependent(*arrays, cpu=kernel, default=elsewhere)
-
-
-def _matrix_to_quaternion(xp: Any, matrix: Array, *, scalar_first: bool = True) -> Array:
-    """The formula above; the kernels on the CPU, forward and backward, while :func:`cpu_kernels` is
-    on. Side by side at N = 262144 the kernels measured 1.5x faster forward than the formula and 1.4x
-    forward + backward, 2.4x both at N = 4096."""
-    portable = _M2Q[bool(scalar_first)]
-    kernel = lambda m: _xla.matrix_to_quaternion(m, scalar_first)  # noqa: E731
-    return _on_the_cpu(kernel, lambda m: portable(xp, m), matrix)
-
-
-_matrix_to_quaternion.__name__ = "matrix_to_quaternion"  # the Backend validates arguments by this name
+    return _B(_Q2M, q, scalar_first=scalar_first)
 
 
 @documented(_core.matrix_to_quaternion)
 def matrix_to_quaternion(matrix: ArrayLike, *, scalar_first: bool = True) -> Array:
-    return _B(_matrix_to_quaternion, matrix, scalar_first=scalar_first)
+    return _B(_M2Q, matrix, scalar_first=scalar_first)
 
 
 @documented(_core.standardize_quaternion)
@@ -383,26 +214,14 @@ def axis_angle_to_matrix(axis_angle: ArrayLike) -> Array:
     return _B(_algebra.axis_angle_to_matrix, axis_angle)
 
 
-# matrix_to_axis_angle takes the kernels for its quaternion step on the CPU while cpu_kernels is on
-# (see _core.Conversion): against the plain core step, which XLA fuses into what follows, they
-# measured forward 1.1x faster at N = 262144 and forward + backward 1.2-1.8x from N = 64 on.
-# matrix_to_euler_angles keeps the core's step, where the kernels measured mixed (0.95-1.24x). Without
-# the kernels the composite takes the formula with its derivative written out (_M2Q), as
-# matrix_to_quaternion does: against the plain core step, so3_log at N = 4096 measured 1.4x faster
-# forward and 3x forward + backward (XLA's own derivative of the plain step carried all four
-# candidates, and fused thirteen divisions into each of the nine entries of the cotangent).
-def _m2q_step(xp: Any, matrix: Array) -> Array:
-    return _on_the_cpu(lambda m: _xla.matrix_to_quaternion(m, True), lambda m: _M2Q[True](xp, m), matrix)
-
-
 @documented(_algebra.matrix_to_axis_angle)
 def matrix_to_axis_angle(matrix: ArrayLike) -> Array:
-    return _B(_algebra.matrix_to_axis_angle, matrix, to_quaternion=_m2q_step)
+    return _B(_algebra.matrix_to_axis_angle, matrix, to_quaternion=_M2Q)
 
 
 @documented(_euler.euler_angles_to_matrix)
 def euler_angles_to_matrix(angles: ArrayLike, convention: EulerConvention, *, degrees: bool = False) -> Array:
-    return _B(_euler.euler_angles_to_matrix, angles, convention=convention, degrees=degrees)
+    return _B(_euler.euler_angles_to_matrix, angles, convention=convention, degrees=degrees, to_matrix=_Q2M)
 
 
 @documented(_euler.matrix_to_euler_angles)
@@ -479,50 +298,24 @@ def so3_hat(omega: ArrayLike) -> Array:
     return _B(_lie.so3_hat, omega)
 
 
-def _kernels_or(core_fn: Callable[..., Array], kernel: Callable[..., Array]) -> Callable[..., Any]:
-    """The Backend's ``choose`` for a function with C kernels: ``kernel(*arrays, **options)`` or
-    ``core_fn`` as :func:`_on_the_cpu` decides. The kernels have the core's non-finite rows (the torch
-    binding's tests)."""
-
-    def evaluate(xp: Any, *arrays: Array, **options: Any) -> Array:
-        return _on_the_cpu(
-            lambda *xs: kernel(*xs, **options), lambda *xs: core_fn(xp, *xs, **options), *arrays
-        )
-
-    return lambda *arrays: evaluate
-
-
-# The Jacobians and quaternion_plus take the kernels on the CPU while cpu_kernels is on: side by side
-# with the formula (benchmarks/LIE.md) one custom call each way, where XLA's programs for the formula
-# have 7 to 21 kernels; below N ~ 16 rotations those run inline, above they go to XLA's thread pool,
-# and a custom call, which XLA's cost model counts as no work, keeps the whole call inline.
-def _jacobian_choice(kind: str) -> Callable[..., Any]:
-    return _kernels_or(_xla.JACOBIANS[kind], lambda omega: _xla.jacobian(omega, kind))
-
-
-# by the kinds of _xla.JACOBIANS; empty, and None, (the formula) where the extension was not built
-_JACOBIAN_CHOICE = {kind: _jacobian_choice(kind) for kind in _xla.JACOBIANS} if _xla is not None else {}
-_QPLUS_CHOICE = _kernels_or(_lie.quaternion_plus, _xla.quaternion_plus) if _xla is not None else None
-
-
 @documented(_lie.so3_left_jacobian)
 def so3_left_jacobian(omega: ArrayLike) -> Array:
-    return _B(_lie.so3_left_jacobian, omega, choose=_JACOBIAN_CHOICE.get("jl"))
+    return _B(_lie.so3_left_jacobian, omega)
 
 
 @documented(_lie.so3_right_jacobian)
 def so3_right_jacobian(omega: ArrayLike) -> Array:
-    return _B(_lie.so3_right_jacobian, omega, choose=_JACOBIAN_CHOICE.get("jr"))
+    return _B(_lie.so3_right_jacobian, omega)
 
 
 @documented(_lie.so3_left_jacobian_inverse)
 def so3_left_jacobian_inverse(omega: ArrayLike) -> Array:
-    return _B(_lie.so3_left_jacobian_inverse, omega, choose=_JACOBIAN_CHOICE.get("jl_inv"))
+    return _B(_lie.so3_left_jacobian_inverse, omega)
 
 
 @documented(_lie.so3_right_jacobian_inverse)
 def so3_right_jacobian_inverse(omega: ArrayLike) -> Array:
-    return _B(_lie.so3_right_jacobian_inverse, omega, choose=_JACOBIAN_CHOICE.get("jr_inv"))
+    return _B(_lie.so3_right_jacobian_inverse, omega)
 
 
 @documented(_lie.so3_vee)
@@ -537,24 +330,24 @@ def so3_exp(omega: ArrayLike) -> Array:
 
 @documented(_lie.so3_log)
 def so3_log(matrix: ArrayLike) -> Array:
-    return _B(_lie.so3_log, matrix, to_quaternion=_m2q_step)
+    return _B(_lie.so3_log, matrix, to_quaternion=_M2Q)
 
 
 @documented(_lie.so3_plus)
 def so3_plus(matrix: ArrayLike, delta: ArrayLike, *, side: Side = "right") -> Array:
-    return _B(_lie.so3_plus, matrix, delta, side=side)
+    return _B(_lie.so3_plus, matrix, delta, side=side, to_matrix=_Q2M)
 
 
 @documented(_lie.so3_minus)
 def so3_minus(matrix1: ArrayLike, matrix2: ArrayLike, *, side: Side = "right") -> Array:
-    return _B(_lie.so3_minus, matrix1, matrix2, side=side, to_quaternion=_M2Q[True])
+    return _B(_lie.so3_minus, matrix1, matrix2, side=side, to_quaternion=_M2Q)
 
 
 @documented(_lie.quaternion_plus)
 def quaternion_plus(
     q: ArrayLike, delta: ArrayLike, *, side: Side = "right", scalar_first: bool = True
 ) -> Array:
-    return _B(_lie.quaternion_plus, q, delta, side=side, scalar_first=scalar_first, choose=_QPLUS_CHOICE)
+    return _B(_lie.quaternion_plus, q, delta, side=side, scalar_first=scalar_first)
 
 
 @documented(_lie.quaternion_minus)
@@ -655,7 +448,9 @@ def matrix_fisher_sample(F: ArrayLike, shape: int | tuple[int, ...] = (), *, key
 # diffquat._statistics): jax transposes the tangent rule for reverse mode.
 _karcher_mean = custom_derivative(_stats.karcher_mean, _stats.karcher_tangent)
 _geodesic_median = custom_derivative(_stats.geodesic_median, _stats.median_tangent)
-_rotation_mean = _compiled(_stats.rotation_mean, "method", "procrustes", "karcher", "median")
+_rotation_mean = _compiled(
+    _stats.rotation_mean, "method", "procrustes", "karcher", "median", "to_quaternion", "to_matrix"
+)
 _quaternion_mean = _compiled(_stats.quaternion_mean, "scalar_first", "eigenvector")
 _symmetric_geodesic_distance = _compiled(_stats.symmetric_geodesic_distance)
 
@@ -673,6 +468,8 @@ def rotation_mean(
         procrustes=_special_procrustes,
         karcher=_karcher_mean,
         median=_geodesic_median,
+        to_quaternion=_M2Q,
+        to_matrix=_Q2M,
     )
 
 

@@ -19,8 +19,7 @@ from .. import _statistics as _stats
 from .._backend import Backend, documented, shape_tuple
 from .._public import public_dir as _public_dir
 from .._types import EulerConvention, MeanMethod, Rotation6DLayout, Side
-from . import _dispatch
-from ._custom import custom_derivative
+from ._custom import custom_derivative, refuse_onnx
 
 __all__ = [
     "axis_angle_to_matrix",
@@ -136,30 +135,23 @@ _B = Backend(
 )
 
 
+# The conversions with their derivatives written out (diffquat._core.derivative_rules): an
+# autograd.Function in eager mode, the formula under capture (see _custom.capturing). The public
+# functions and every composite's conversion step call these.
+_CONVERSIONS = _core.registered_conversions(
+    lambda name, rule: custom_derivative(*rule, formula_when_captured=True)
+)
+_Q2M, _M2Q = _CONVERSIONS["quaternion_to_matrix"], _CONVERSIONS["matrix_to_quaternion"]
+
+
 @documented(_core.quaternion_to_matrix)
 def quaternion_to_matrix(q: Tensor, *, scalar_first: bool = True) -> Tensor:
-    # The formula, the C kernels or the Triton kernels: see _dispatch.py.
-    return _B(_core.quaternion_to_matrix, q, choose=_dispatch.quaternion_to_matrix, scalar_first=scalar_first)
+    return _B(_Q2M, q, scalar_first=scalar_first)
 
 
 @documented(_core.matrix_to_quaternion)
 def matrix_to_quaternion(matrix: Tensor, *, scalar_first: bool = True) -> Tensor:
-    return _B(
-        _core.matrix_to_quaternion, matrix, choose=_dispatch.matrix_to_quaternion, scalar_first=scalar_first
-    )
-
-
-def _quaternion_to_matrix(xp: Any, q: Tensor, *, scalar_first: bool = True) -> Tensor:
-    """The conversion step of the composites (see ``_core.Conversion``), by the evaluation
-    :func:`quaternion_to_matrix` would take for it."""
-    r: Tensor = _dispatch.quaternion_to_matrix(q)(xp, q, scalar_first=scalar_first)
-    return r
-
-
-def _matrix_to_quaternion(xp: Any, matrix: Tensor, *, scalar_first: bool = True) -> Tensor:
-    """The conversion step of the composites, by the evaluation :func:`matrix_to_quaternion` would take."""
-    q: Tensor = _dispatch.matrix_to_quaternion(matrix)(xp, matrix, scalar_first=scalar_first)
-    return q
+    return _B(_M2Q, matrix, scalar_first=scalar_first)
 
 
 @documented(_core.standardize_quaternion)
@@ -203,13 +195,13 @@ def matrix_to_rotation_6d(matrix: Tensor, *, layout: Rotation6DLayout = "columns
 
 @documented(_rep.special_procrustes)
 def special_procrustes(matrix: Tensor) -> Tensor:
-    _dispatch.refuse_onnx("special_procrustes", "the projection onto SO(3)")
+    refuse_onnx("special_procrustes", "the projection onto SO(3)")
     return _B(_special_procrustes, matrix)
 
 
 @documented(_rep.symmetric_matrix_to_quaternion)
 def symmetric_matrix_to_quaternion(a: Tensor, *, scalar_first: bool = True) -> Tensor:
-    _dispatch.refuse_onnx("symmetric_matrix_to_quaternion", "the smallest eigenvector")
+    refuse_onnx("symmetric_matrix_to_quaternion", "the smallest eigenvector")
     return _B(
         _rep.symmetric_matrix_to_quaternion, a, scalar_first=scalar_first, eigenvector=_smallest_eigenvector
     )
@@ -217,7 +209,7 @@ def symmetric_matrix_to_quaternion(a: Tensor, *, scalar_first: bool = True) -> T
 
 @documented(_rep.fit_rotation)
 def fit_rotation(source: Tensor, target: Tensor, weights: Tensor | None = None) -> Tensor:
-    _dispatch.refuse_onnx("fit_rotation", "the least-squares rotation")
+    refuse_onnx("fit_rotation", "the least-squares rotation")
     return _B(_rep.fit_rotation, source, target, weights, procrustes=_special_procrustes)
 
 
@@ -236,12 +228,12 @@ def quaternion_to_axis_angle(q: Tensor, *, scalar_first: bool = True) -> Tensor:
 
 @documented(_algebra.axis_angle_to_matrix)
 def axis_angle_to_matrix(axis_angle: Tensor) -> Tensor:
-    return _B(_algebra.axis_angle_to_matrix, axis_angle, to_matrix=_quaternion_to_matrix)
+    return _B(_algebra.axis_angle_to_matrix, axis_angle)
 
 
 @documented(_algebra.matrix_to_axis_angle)
 def matrix_to_axis_angle(matrix: Tensor) -> Tensor:
-    return _B(_algebra.matrix_to_axis_angle, matrix, to_quaternion=_matrix_to_quaternion)
+    return _B(_algebra.matrix_to_axis_angle, matrix, to_quaternion=_M2Q)
 
 
 @documented(_euler.euler_angles_to_matrix)
@@ -251,7 +243,7 @@ def euler_angles_to_matrix(angles: Tensor, convention: EulerConvention, *, degre
         angles,
         convention=convention,
         degrees=degrees,
-        to_matrix=_quaternion_to_matrix,
+        to_matrix=_Q2M,
     )
 
 
@@ -331,23 +323,22 @@ def so3_hat(omega: Tensor) -> Tensor:
 
 @documented(_lie.so3_left_jacobian)
 def so3_left_jacobian(omega: Tensor) -> Tensor:
-    # The formula or the C kernels (the four Jacobians alike): see _dispatch.py.
-    return _B(_lie.so3_left_jacobian, omega, choose=_dispatch.so3_left_jacobian)
+    return _B(_lie.so3_left_jacobian, omega)
 
 
 @documented(_lie.so3_right_jacobian)
 def so3_right_jacobian(omega: Tensor) -> Tensor:
-    return _B(_lie.so3_right_jacobian, omega, choose=_dispatch.so3_right_jacobian)
+    return _B(_lie.so3_right_jacobian, omega)
 
 
 @documented(_lie.so3_left_jacobian_inverse)
 def so3_left_jacobian_inverse(omega: Tensor) -> Tensor:
-    return _B(_lie.so3_left_jacobian_inverse, omega, choose=_dispatch.so3_left_jacobian_inverse)
+    return _B(_lie.so3_left_jacobian_inverse, omega)
 
 
 @documented(_lie.so3_right_jacobian_inverse)
 def so3_right_jacobian_inverse(omega: Tensor) -> Tensor:
-    return _B(_lie.so3_right_jacobian_inverse, omega, choose=_dispatch.so3_right_jacobian_inverse)
+    return _B(_lie.so3_right_jacobian_inverse, omega)
 
 
 @documented(_lie.so3_vee)
@@ -357,30 +348,27 @@ def so3_vee(matrix: Tensor) -> Tensor:
 
 @documented(_lie.so3_exp)
 def so3_exp(omega: Tensor) -> Tensor:
-    return _B(_lie.so3_exp, omega, to_matrix=_quaternion_to_matrix)
+    return _B(_lie.so3_exp, omega)
 
 
 @documented(_lie.so3_log)
 def so3_log(matrix: Tensor) -> Tensor:
-    return _B(_lie.so3_log, matrix, to_quaternion=_matrix_to_quaternion)
+    return _B(_lie.so3_log, matrix, to_quaternion=_M2Q)
 
 
 @documented(_lie.so3_plus)
 def so3_plus(matrix: Tensor, delta: Tensor, *, side: Side = "right") -> Tensor:
-    return _B(_lie.so3_plus, matrix, delta, side=side, to_matrix=_quaternion_to_matrix)
+    return _B(_lie.so3_plus, matrix, delta, side=side, to_matrix=_Q2M)
 
 
 @documented(_lie.so3_minus)
 def so3_minus(matrix1: Tensor, matrix2: Tensor, *, side: Side = "right") -> Tensor:
-    return _B(_lie.so3_minus, matrix1, matrix2, side=side, to_quaternion=_matrix_to_quaternion)
+    return _B(_lie.so3_minus, matrix1, matrix2, side=side, to_quaternion=_M2Q)
 
 
 @documented(_lie.quaternion_plus)
 def quaternion_plus(q: Tensor, delta: Tensor, *, side: Side = "right", scalar_first: bool = True) -> Tensor:
-    # The formula or the C kernels: see _dispatch.py.
-    return _B(
-        _lie.quaternion_plus, q, delta, choose=_dispatch.quaternion_plus, side=side, scalar_first=scalar_first
-    )
+    return _B(_lie.quaternion_plus, q, delta, side=side, scalar_first=scalar_first)
 
 
 @documented(_lie.quaternion_minus)
@@ -432,25 +420,25 @@ _reduced_log_normalizer = custom_derivative(
 
 @documented(_fi.matrix_fisher_log_normalizer)
 def matrix_fisher_log_normalizer(F: Tensor) -> Tensor:
-    _dispatch.refuse_onnx("matrix_fisher_log_normalizer", "the matrix Fisher normaliser")
+    refuse_onnx("matrix_fisher_log_normalizer", "the matrix Fisher normaliser")
     return _B(_fi.matrix_fisher_log_normalizer, F, normalizer=_reduced_log_normalizer)
 
 
 @documented(_fi.matrix_fisher_nll)
 def matrix_fisher_nll(F: Tensor, matrix: Tensor) -> Tensor:
-    _dispatch.refuse_onnx("matrix_fisher_nll", "the matrix Fisher normaliser")
+    refuse_onnx("matrix_fisher_nll", "the matrix Fisher normaliser")
     return _B(_fi.matrix_fisher_nll, F, matrix, normalizer=_reduced_log_normalizer)
 
 
 @documented(_fi.matrix_fisher_mode)
 def matrix_fisher_mode(F: Tensor) -> Tensor:
-    _dispatch.refuse_onnx("matrix_fisher_mode", "the projection onto SO(3)")
+    refuse_onnx("matrix_fisher_mode", "the projection onto SO(3)")
     return _B(_fi.matrix_fisher_mode, F, procrustes=_special_procrustes)
 
 
 @documented(_fi.bingham_nll)
 def bingham_nll(a: Tensor, q: Tensor, *, scalar_first: bool = True) -> Tensor:
-    _dispatch.refuse_onnx("bingham_nll", "the Bingham normaliser")
+    refuse_onnx("bingham_nll", "the Bingham normaliser")
     return _B(_fi.bingham_nll, a, q, scalar_first=scalar_first, normalizer=_reduced_log_normalizer)
 
 
@@ -503,7 +491,7 @@ _geodesic_median = custom_derivative(
 def rotation_mean(
     matrices: Tensor, weights: Tensor | None = None, *, method: MeanMethod = "chordal"
 ) -> Tensor:
-    _dispatch.refuse_onnx("rotation_mean", "a mean of rotations")
+    refuse_onnx("rotation_mean", "a mean of rotations")
     return _B(
         _stats.rotation_mean,
         matrices,
@@ -512,14 +500,14 @@ def rotation_mean(
         procrustes=_special_procrustes,
         karcher=_karcher_mean,
         median=_geodesic_median,
-        to_quaternion=_matrix_to_quaternion,
-        to_matrix=_quaternion_to_matrix,
+        to_quaternion=_M2Q,
+        to_matrix=_Q2M,
     )
 
 
 @documented(_stats.quaternion_mean)
 def quaternion_mean(q: Tensor, weights: Tensor | None = None, *, scalar_first: bool = True) -> Tensor:
-    _dispatch.refuse_onnx("quaternion_mean", "the largest eigenvector")
+    refuse_onnx("quaternion_mean", "the largest eigenvector")
     return _B(
         _stats.quaternion_mean, q, weights, scalar_first=scalar_first, eigenvector=_smallest_eigenvector
     )

@@ -1,5 +1,6 @@
-"""Custom derivatives for torch: one map whose library derivative is unstable (SVD, eigh) with its
-own rules, in both modes. The formulas live in the core, over ``xp``; this only registers them.
+"""Custom derivatives for torch: a map whose library derivative is unstable (SVD, eigh) or slow (the
+conversions) with its own rules, in both modes. The formulas live in the core, over ``xp``; this only
+registers them, and :func:`capturing` is the one place that decides which form a call takes.
 
 Two forms of one map, because eager torch and graph capture each honour a different part of an
 ``autograd.Function``:
@@ -12,7 +13,11 @@ Two forms of one map, because eager torch and graph capture each honour a differ
   under ``hessian``, and without ``jvp`` differentiates its forward's operations under ``torch.func``
   (``torch.func.jvp`` of the SVD at M = I: NaN); ``torch.jit.trace`` records one as a Python call that
   TorchScript cannot save. So the map is written as plain operations whose autodiff *is* the custom
-  rule, to second order (:func:`_linearised`).
+  rule, to second order (:func:`_linearised`), or, where autodiff of the formula is exact and fast
+  once compiled (the conversions: inductor fuses it with the surrounding code), as the formula itself.
+
+Both forms compute the forward by the same formula, so a differentiated call returns, bit for bit,
+the value of a plain call, and the eager and captured forms agree to rounding.
 
 An iterative map (the geodesic means: a fixed number of Newton steps, then a derivative by the
 implicit function theorem) may also make its forward one opaque operator (``result_shape``, see
@@ -21,6 +26,7 @@ implicit function theorem) may also make its forward one opaque operator (``resu
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -30,6 +36,13 @@ from torch.autograd.forward_ad import _set_fwd_grad_enabled
 from torch.jit._trace import is_tracing
 
 Formula = Callable[[Any, Tensor, Tensor, Tensor], Tensor]
+
+
+def capturing() -> bool:
+    """Whether a graph capture records this call: ``torch.compile``, ``torch.export`` and the dynamo
+    ONNX exporter (Dynamo), ``torch.jit.trace`` and the TorchScript ONNX exporter. Eager calls, and
+    ``torch.func`` transforms of them, take the ``autograd.Function``; captures take the plain form."""
+    return torch.compiler.is_compiling() or bool(is_tracing())  # type: ignore[no-untyped-call]
 
 
 def _linearised(forward: Callable[[Any, Tensor], Tensor], tangent: Formula, x: Tensor) -> Tensor:
@@ -104,6 +117,7 @@ def custom_derivative(
     *,
     captured: Callable[[Any, Tensor, Tensor], Tensor] | None = None,
     result_shape: Callable[[tuple[int, ...]], tuple[int, ...]] | None = None,
+    formula_when_captured: bool = False,
 ) -> Callable[[Any, Tensor], Tensor]:
     """``forward(xp, x) -> y`` with the derivatives ``tangent(xp, x, y, dx) -> dy`` (forward mode)
     and ``cotangent(xp, x, y, gy) -> gx`` (reverse mode). Both formulas are written with
@@ -120,7 +134,8 @@ def custom_derivative(
     differentiate ``eigh``, which is NaN where eigenvalues repeat even for a zero cotangent).
 
     With ``result_shape`` (the shape of ``y`` for that of ``x``), the forward is an opaque operator
-    (:func:`_opaque`)."""
+    (:func:`_opaque`). With ``formula_when_captured``, a capture records the forward's own operations,
+    whose autodiff is the map's exact derivative to every order."""
     if result_shape is not None:
         forward = _opaque(forward, result_shape)
 
@@ -158,10 +173,14 @@ def custom_derivative(
             with _set_fwd_grad_enabled(True):
                 return tangent(torch, x, y, dx), dx
 
-    Eager.__name__ = Eager.__qualname__ = f"_{forward.__name__}_eager"
+    # A subclass of the map's name: autograd names the backward node after the class when it is made
+    # (``_quaternion_to_matrix_eagerBackward`` in a graph, not one ``EagerBackward`` for every map).
+    Eager = type(f"_{forward.__name__}_eager", (Eager,), {"__doc__": Eager.__doc__})  # type: ignore[assignment,misc]
 
     def bound(xp: Any, x: Tensor) -> Tensor:
-        if torch.compiler.is_compiling() or is_tracing():  # type: ignore[no-untyped-call]
+        if capturing():
+            if formula_when_captured:
+                return forward(torch, x)
             if captured is not None:
                 x0 = x.detach()
                 return captured(torch, x0, x - x0)
@@ -170,3 +189,29 @@ def custom_derivative(
 
     bound.__name__ = forward.__name__  # the Backend validates arguments by this name
     return bound
+
+
+def exporting_to_onnx() -> bool:
+    """Whether an ONNX exporter is tracing this call. ``torch.onnx.is_in_onnx_export`` says so for the
+    TorchScript exporter and the dynamo exporter's non-strict pass; Dynamo (the strict pass, which the
+    exporter falls back to) folds that function to False, so the exporter's own flag is read as well
+    (a module attribute, which Dynamo reads and guards on). Neither module is imported here: where
+    ``torch.onnx`` was never imported, nothing is exporting."""
+    onnx = sys.modules.get("torch.onnx")
+    if onnx is None:
+        return False
+    flags = sys.modules.get("torch.onnx._internal.exporter._flags")
+    return bool(onnx.is_in_onnx_export() or getattr(flags, "_is_onnx_exporting", False))
+
+
+def refuse_onnx(fname: str, what: str) -> None:
+    """Raise ``NotImplementedError`` naming ``fname`` (and ``what`` it is) if an ONNX export traces this
+    call: ONNX has no SVD or symmetric eigensolver operator, so the map cannot be exported, and without
+    this the exporters fail later with a message about ``aten::linalg_svd`` that names no diffquat
+    function."""
+    if exporting_to_onnx():
+        raise NotImplementedError(
+            f"{fname}: {what} cannot be exported to ONNX: it takes an SVD or a symmetric eigendecomposition, "
+            "and ONNX has no such operator. Export a '6d' or 'quaternion' head (both export), or deploy "
+            "with torch.export or TorchScript, which run it."
+        )

@@ -37,7 +37,7 @@ import diffquat.torch as _dq
 from .. import _heads
 from .._public import public_dir as _public_dir
 from .._types import Representation
-from . import _dispatch
+from . import _custom
 
 __all__ = [
     "REPRESENTATIONS",
@@ -66,7 +66,7 @@ def representation_to_matrix(raw: Tensor, representation: Representation) -> Ten
     ``NotImplementedError``.
     """
     if representation in ("9d", "10d", "fisher"):
-        _dispatch.refuse_onnx("representation_to_matrix", f"the {representation!r} representation")
+        _custom.refuse_onnx("representation_to_matrix", f"the {representation!r} representation")
     return _heads.representation_to_matrix(torch, _dq, raw, representation)
 
 
