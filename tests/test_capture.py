@@ -9,8 +9,8 @@ then called on another. The four conversions and the heads whose maps have ONNX 
 both ONNX exporters and run in onnxruntime; the 9D and 10D heads refuse with a message that names them.
 
 Inputs are float64 so that the capture and eager agree to a few ulps of float64 whatever the machine
-(a compiler may fuse and round differently); 1e-12 is about 5000 ulps of the outputs (all of size <= ~10) and a wrong
-capture is off by O(1).
+(a compiler may fuse and round differently); 1e-12 is about 5000 ulps of the outputs (all of size
+<= ~10) and a wrong capture is off by O(1).
 """
 
 from __future__ import annotations

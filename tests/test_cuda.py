@@ -1,6 +1,6 @@
 """On a CUDA device (skipped without one; run on a GPU machine by hand, CI has none): the conversions
-(eager, their Functions) and every capture of them compute what the float64 reference does, and the Lie calculus, the
-means, the symmetric distance, the heads and the optimisers run on the device and agree with the CPU.
+(eager, their Functions) and every capture of them compute what the float64 reference does, and
+the Lie calculus, the means, the symmetric distance, the heads and the optimisers run on the device and agree with the CPU.
 Every float32 result is compared with a float64 reference at a bound stated in ulps, never with
 another float32 evaluation."""
 
@@ -70,7 +70,8 @@ def test_conversions_and_their_captures_equal_the_float64_reference() -> None:
 
 
 def test_device_backward_equals_float64_autograd() -> None:
-    """The conversions' cotangents on the device against float64 on the CPU: gradients of size ~1 per unit cotangent, within 32 ulps of 1."""
+    """The conversions' cotangents on the device against float64 on the CPU: gradients of size ~1 per
+    unit cotangent, within 32 ulps of 1."""
     q = _quaternions(512, 2)
     cot = np.random.default_rng(3).normal(size=(512, 3, 3))
     device = _cuda(q).requires_grad_(True)
