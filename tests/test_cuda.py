@@ -1,8 +1,8 @@
 """On a CUDA device (skipped without one; run on a GPU machine by hand, CI has none): the conversions
 (eager, their Functions) and every capture of them compute what the float64 reference does, and
 the Lie calculus, the means, the symmetric distance, the heads and the optimisers run on the device
-and agree with the CPU. Every float32 result is compared with a float64 reference at a bound stated in ulps, never with
-another float32 evaluation."""
+and agree with the CPU. Every float32 result is compared with a float64 reference at a bound stated
+in ulps, never with another float32 evaluation."""
 
 from __future__ import annotations
 
