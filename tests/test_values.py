@@ -71,9 +71,56 @@ def max_error(actual: np.ndarray, expected: np.ndarray, up_to_sign: bool = False
     return float(err.max())
 
 
+FULL_DTYPES = ("float64", "float32")
+HALF_DTYPES = ("float16", "bfloat16")
+
+
+@only(dtype=lambda d: d in FULL_DTYPES)
 def test_values(op: Op, backend: Backend, dtype: str, case: Case) -> None:
+    """The oracle's values within the op's tolerance, and, from the same call, what a user relies on
+    besides: a matrix is a rotation, a quaternion is unit and in canonical sign, and scalar-last
+    storage gives the reordered scalar-first result bit for bit."""
     received, out = run(op, backend, dtype, case)
     check_values(op, dtype, received, out)
+    check_properties(op, dtype, out)
+    if op.scalar_first:
+        _, last = run(op, backend, dtype, case, scalar_last=True)
+        np.testing.assert_array_equal(from_scalar_last(op, last), out)
+
+
+@only(dtype=lambda d: d in HALF_DTYPES)
+def test_values_in_half_precision(op: Op, backend: Backend, dtype: str) -> None:
+    """float16 and bfloat16 (computed in float32, returned in their dtype): what test_values checks,
+    at every value case, in one call over the cases concatenated (rows are independent), each case's
+    rows checked on their own."""
+    xs, parts = value_batches(op, dtype)
+    outs = {}
+    for scalar_last in (False, True) if op.scalar_first else (False,):
+        inputs = [
+            op.to_scalar_last(x) if scalar_last and i in op.quaternion_args else x for i, x in enumerate(xs)
+        ]
+        arrays = [backend.array(x, dtype) for x in inputs]
+        out = op(backend.module, *arrays, **({"scalar_first": False} if scalar_last else {}))
+        assert out.dtype == arrays[0].dtype, "dtype not preserved"
+        outs[scalar_last] = backend.to_numpy(out)
+    failures = []
+    for case, rows, batch in parts:
+        received = [x[rows].reshape(*batch, *x.shape[1:]) for x in xs]
+        out = outs[False][rows].reshape(*batch, *outs[False].shape[1:])
+        try:
+            check_values(op, dtype, received, out)
+            check_properties(op, dtype, out)
+            if op.scalar_first:
+                last = outs[True][rows].reshape(*batch, *outs[True].shape[1:])
+                np.testing.assert_array_equal(from_scalar_last(op, last), out)
+        except AssertionError as error:
+            failures.append(f"{case.name}: {error}")
+    assert not failures, "\n".join(failures)
+
+
+def from_scalar_last(op: Op, out: np.ndarray) -> np.ndarray:
+    """A scalar-last call's output in scalar-first order (a quaternion output is reordered)."""
+    return out[..., XYZW_TO_WXYZ] if op.output == "quaternion" else out
 
 
 def check_values(op: Op, dtype: str, received: list[np.ndarray], out: np.ndarray) -> None:
@@ -81,6 +128,23 @@ def check_values(op: Op, dtype: str, received: list[np.ndarray], out: np.ndarray
     oracle's within the op's tolerance."""
     assert np.all(np.isfinite(out))
     assert table_error(op, received, out) <= tol(op, dtype)
+
+
+def check_properties(op: Op, dtype: str, out: np.ndarray) -> None:
+    """A matrix output is a rotation (orthonormal, det 1); a quaternion output is unit (``op.unit``)
+    and in canonical sign (``op.canonical``), within the op's tolerance."""
+    if op.output == "matrix":
+        gram = np.swapaxes(out, -1, -2) @ out
+        assert max_error(gram, np.broadcast_to(np.eye(3), gram.shape)) <= 2 * tol(op, dtype)
+        det = np.linalg.det(out) if out.size else np.ones(0)
+        assert np.all(np.abs(det - 1) <= 3 * tol(op, dtype))
+    if op.unit:
+        norm = np.linalg.norm(out, axis=-1)
+        assert np.all(np.abs(norm - 1) <= 2 * tol(op, dtype))
+    if op.canonical:
+        w, x, y, z = np.moveaxis(out, -1, 0)
+        negative = (w < 0) | ((w == 0) & ((x < 0) | ((x == 0) & ((y < 0) | ((y == 0) & (z < 0))))))
+        assert not np.any(negative)
 
 
 # What test_jax_values_hold_under_xlas_default_cpu_emitters runs in its subprocess: every op at every
@@ -129,36 +193,6 @@ def test_jax_values_hold_under_xlas_default_cpu_emitters(tmp_path: Path) -> None
                 except AssertionError as error:
                     failures.append(f"{op.id} {dtype} {case.name}: {error}")
     assert not failures, "\n".join(failures)
-
-
-@only(op=lambda op: op.output == "matrix")
-def test_output_is_a_rotation(op: Op, backend: Backend, dtype: str, case: Case) -> None:
-    _, matrix = run(op, backend, dtype, case)
-    gram = np.swapaxes(matrix, -1, -2) @ matrix
-    assert max_error(gram, np.broadcast_to(np.eye(3), gram.shape)) <= 2 * tol(op, dtype)
-    det = np.linalg.det(matrix) if matrix.size else np.ones(0)
-    assert np.all(np.abs(det - 1) <= 3 * tol(op, dtype))
-
-
-@only(op=lambda op: op.canonical or op.unit)
-def test_output_quaternion_is_canonical_and_unit(op: Op, backend: Backend, dtype: str, case: Case) -> None:
-    _, q = run(op, backend, dtype, case)
-    if op.unit:
-        norm = np.linalg.norm(q, axis=-1)
-        assert np.all(np.abs(norm - 1) <= 2 * tol(op, dtype))
-    if op.canonical:
-        w, x, y, z = np.moveaxis(q, -1, 0)
-        negative = (w < 0) | ((w == 0) & ((x < 0) | ((x == 0) & ((y < 0) | ((y == 0) & (z < 0))))))
-        assert not np.any(negative)
-
-
-@only(op=lambda op: op.scalar_first)
-def test_scalar_last_is_the_reordered_scalar_first(op: Op, backend: Backend, dtype: str, case: Case) -> None:
-    _, first = run(op, backend, dtype, case)
-    _, out = run(op, backend, dtype, case, scalar_last=True)
-    if op.output == "quaternion":
-        out = out[..., XYZW_TO_WXYZ]
-    np.testing.assert_array_equal(out, first)
 
 
 def test_round_trip_matrix_quaternion_matrix(backend: Backend, dtype: str, case: Case) -> None:
