@@ -1,7 +1,8 @@
 """The GPU half of the benchmark: ``python -m benchmarks.gpu [--quick] [--out DIR]`` on a CUDA machine.
 
-The same methods as :mod:`benchmarks.run` (diffquat's torch eager path, which on CUDA is its Triton
-kernels, torch.compile, jax.jit on the GPU, and the peers), timed the same way (medians over
+The same methods as :mod:`benchmarks.run` (diffquat's torch eager path, which on CUDA as on the CPU is
+torch's operations of the formula, the two conversions as ``autograd.Function``s with their derivatives
+written out; torch.compile; jax.jit on the GPU; and the peers), timed the same way (medians over
 interleaved blocks, each block synchronised with the device at its end), for ``quaternion_to_matrix``
 and ``matrix_to_quaternion`` up to N = 16 777 216, against a device-to-device copy of the same bytes.
 It also counts the kernels that one diffquat call launches, forward and backward, with torch's
@@ -119,7 +120,14 @@ def run_gpu(quick: bool, out_dir: Path, device: str) -> dict[str, Any]:
     # One dynamic graph per function from the first call: a recompilation per batch size is minutes.
     ops = [op for op in run.build_ops(quick, dynamic=True) if op.name in OPS]
     started = time.time()
-    results: dict[str, Any] = {"quick": quick, "sizes": list(sizes), "device": device, "ops": {}}
+    # What diffquat's eager torch path was when this ran (a gpu.json without it: the former Triton kernels).
+    results: dict[str, Any] = {
+        "quick": quick,
+        "sizes": list(sizes),
+        "device": device,
+        "eager_path": "formula (autograd.Function for the conversions)",
+        "ops": {},
+    }
     # 128 B per rotation is about the largest traffic timed here (matrix_to_quaternion forward + backward)
     results["copy_bandwidth"] = copy_bandwidth(device, 32 * sizes[-1])
     for op in ops:
@@ -195,11 +203,21 @@ def render(results: dict[str, Any]) -> str:
         "|---|---|",
         *[f"| {k} | {v} |" for k, v in info.items() if k not in ("torch threads",)],
         "",
+        *(
+            [
+                "Measured with diffquat's former Triton kernels as its eager torch path on CUDA; they "
+                "have been removed (the eager path is now torch's operations of the formula): to be "
+                "re-measured.",
+                "",
+            ]
+            if results.get("eager_path") is None
+            else []
+        ),
         "![ns per rotation against N, GPU](gpu.png)",
         "",
         f"### Targets at N = {TARGET_N} (issue 4)",
         "",
-        "| op | mode | diffquat eager (Triton) / copy bound | fastest torch peer / diffquat eager "
+        "| op | mode | diffquat eager / copy bound | fastest torch peer / diffquat eager "
         "| jaxlie / diffquat jax |",
         "|---|---|---|---|---|",
     ]

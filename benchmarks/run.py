@@ -9,8 +9,14 @@ method leaves behind for the next, hit all methods alike; the first call (warm-u
 moves the same bytes as the conversion (input read + output written; forward + backward adds the
 input and the cotangent read and the input gradient written): each time is also a fraction of it.
 The peers are benchmark-only dependencies (the ``bench`` extra); a missing one is left out and named.
-jax's ``matrix_to_quaternion`` and ``matrix_to_axis_angle`` have two rows, side by side in one run: the
-default (the formula, on every platform) and the C kernels that ``diffquat.jax.cpu_kernels`` turns on.
+Every diffquat row evaluates the library's one formula (torch's two conversions as
+``autograd.Function``s with their derivatives written out in eager mode, jax's ``matrix_to_quaternion``
+as a ``custom_jvp``); each path (torch eager, ``torch.compile``, ``jax.jit``, numpy) is set against the
+fastest peer on that path, and every cell below 1.0x is listed in the report.
+
+The per-call cost of validation and dispatch is measured apart at N = 1 (:func:`overhead`): each
+backend's public conversion beside the same conversion called without the argument checks and beside
+the bare core formula, side by side in rotated blocks.
 
 The Lie functions (``so3_*``, ``quaternion_plus``) are timed against the peers that have them: jaxlie,
 kornia, pypose and theseus' Lie library torchlie (``theseus-ai`` itself builds C++ extensions against
@@ -22,6 +28,7 @@ rotation vector) or ``(N, 7)`` (the quaternion, then the rotation vector), split
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import platform
@@ -41,18 +48,6 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
 
 import cases  # noqa: E402  (the test suite's named cases: the accuracy table runs on them)
-
-# The jax functions that diffquat.jax.cpu_kernels changes on the CPU (tests/test_jax_deploy.py's
-# KERNEL_OPS): their jax rows are timed both ways, the default formula and the C kernels.
-JAX_KERNEL_OPS = (
-    "matrix_to_quaternion",
-    "matrix_to_axis_angle",
-    "so3_log",
-    "so3_left_jacobian",
-    "so3_left_jacobian_inverse",
-    "quaternion_plus",
-)
-JAX_KERNELS = "diffquat jax.jit, C kernels (cpu_kernels on)"
 
 FULL_SIZES = (1, 64, 4096, 262144, 4194304)
 QUICK_SIZES = (1, 64)
@@ -127,16 +122,6 @@ def build_ops(quick: bool, dynamic: bool | None = None) -> list[OpSpec]:
 
     def compiled(fn: Callable[[Any], Any]) -> Callable[[Any], Any]:
         return torch.compile(fn, fullgraph=True, dynamic=dynamic)
-
-    def with_kernels(fn: Callable[[Any], Any]) -> Callable[[Any], Any]:
-        """``fn`` traced with the kernels on: the switch is read where a function is traced, so the
-        block inside the traced function holds wherever jit, vjp and the accuracy table trace it."""
-
-        def traced(x: Any) -> Any:
-            with dqj.cpu_kernels():
-                return fn(x)
-
-        return traced
 
     ops: list[OpSpec] = []
     # (name, source, target, peer builders). Axis-angle rows appear once diffquat has those functions.
@@ -385,15 +370,6 @@ def build_ops(quick: bool, dynamic: bool | None = None) -> list[OpSpec]:
                     )
                 )
         methods.append(Method("diffquat jax.jit", "jax", jax.jit(adapt(getattr(dqj, name))), compiled=True))
-        if name in JAX_KERNEL_OPS:
-            if dqj._xla is None:
-                skipped.append(f"{JAX_KERNELS} (the C extension is not built)")
-            else:
-                methods.append(
-                    Method(
-                        JAX_KERNELS, "jax", jax.jit(with_kernels(adapt(getattr(dqj, name)))), compiled=True
-                    )
-                )
         methods.append(Method("diffquat numpy", "numpy", adapt(getattr(dqn, name))))
         for label, build in peers.items():
             methods += _try(skipped, label, build)
@@ -753,6 +729,8 @@ def run(
             err, finite = accuracy(op, m)
             entry["accuracy"][m.label] = {"max_error": err, "grad_finite": finite}
         results["ops"][op.name] = entry
+    if only is None or set(OVERHEAD_OPS) & set(only):  # the Lie run (LIE.md) leaves it to the conversions'
+        results["overhead"] = overhead(repeats, block_s)
     results["seconds"] = time.time() - started
     results["load"] = {"before": load_before, "after": os.getloadavg()}
     results["machine"] = machine()
@@ -799,40 +777,203 @@ def merge(paths: list[Path]) -> dict[str, Any]:
 
 
 TORCH_PEERS = ("roma", "kornia", "pytorch-kinematics", "pypose", THESEUS)
+HAND = "hand-written formula, torch.compile"
+# Each diffquat path, its row, and the peers on that path. The torch peers are called as their users
+# call them, eagerly: the torch.compile row is set against the same eager peers.
+PATHS: dict[str, tuple[str, tuple[str, ...]]] = {
+    "torch eager": ("diffquat torch eager", TORCH_PEERS),
+    "torch.compile": ("diffquat torch.compile", TORCH_PEERS),
+    "jax.jit": ("diffquat jax.jit", ("jaxlie (jit)",)),
+    "numpy": ("diffquat numpy", ("scipy",)),
+}
 
 
-def ratios(results: dict[str, Any]) -> list[str]:
-    """The issue's targets, as ratios from this run."""
-    lines = []
+def path_ratios(results: dict[str, Any]) -> list[dict[str, Any]]:
+    """Every cell of every path: the fastest peer's median time over diffquat's (above 1: diffquat is
+    faster), with the peer's name."""
+    cells = []
     for name, entry in results["ops"].items():
         for mode, per_n in entry["timings"].items():
             for n, ts in per_n.items():
                 t = {label: v["median_s"] for label, v in ts.items()}
-                peers = [t[p] for p in TORCH_PEERS if p in t]
-                parts = []
-                if peers and "diffquat torch eager" in t:
-                    parts.append(
-                        f"fastest torch peer / diffquat eager = {min(peers) / t['diffquat torch eager']:.2f}x"
-                    )
-                hand = "hand-written formula, torch.compile"
-                if hand in t and "diffquat torch.compile" in t:
-                    parts.append(
-                        "diffquat compiled / hand-written compiled = "
-                        f"{t['diffquat torch.compile'] / t[hand]:.2f}"
-                    )
-                if "jaxlie (jit)" in t and "diffquat jax.jit" in t:
-                    parts.append(f"jaxlie / diffquat jax = {t['jaxlie (jit)'] / t['diffquat jax.jit']:.2f}x")
-                if JAX_KERNELS in t and "diffquat jax.jit" in t:
-                    parts.append(
-                        f"jax formula / jax C kernels = {t['diffquat jax.jit'] / t[JAX_KERNELS]:.2f}x"
-                    )
-                    if "jaxlie (jit)" in t:
-                        parts.append(
-                            f"jaxlie / diffquat jax C kernels = {t['jaxlie (jit)'] / t[JAX_KERNELS]:.2f}x"
-                        )
-                if parts:
-                    lines.append(f"| {name} | {mode} | {n} | " + "; ".join(parts) + " |")
+                for path, (row, peers) in PATHS.items():
+                    timed = [(t[p], p) for p in peers if p in t and np.isfinite(t[p])]
+                    if row not in t or not timed or not np.isfinite(t[row]):
+                        continue
+                    fastest, peer = min(timed)
+                    ratio = fastest / t[row]
+                    cell = {"op": name, "mode": mode, "n": int(n), "path": path, "ratio": ratio, "peer": peer}
+                    cells.append(cell)
+    return cells
+
+
+def ratios(results: dict[str, Any]) -> list[str]:
+    """One row per operation, mode and N: the fastest peer / diffquat on each path (below 1 in bold),
+    and diffquat compiled over the formula hand-written and compiled."""
+    by_cell: dict[tuple[str, str, int], dict[str, str]] = {}
+    for c in path_ratios(results):
+        text = f"{c['ratio']:.2f}x ({c['peer']})"
+        by_cell.setdefault((c["op"], c["mode"], c["n"]), {})[c["path"]] = (
+            f"**{text}**" if c["ratio"] < 1.0 else text
+        )
+    lines = []
+    for name, entry in results["ops"].items():
+        for mode, per_n in entry["timings"].items():
+            for n, ts in per_n.items():
+                cells = by_cell.get((name, mode, int(n)), {})
+                t = {label: v["median_s"] for label, v in ts.items()}
+                compiled = t.get("diffquat torch.compile")
+                hand = f"{compiled / t[HAND]:.2f}" if HAND in t and compiled else "—"
+                row = " | ".join(cells.get(path, "—") for path in PATHS)
+                lines.append(f"| {name} | {mode} | {n} | {row} | {hand} |")
     return lines
+
+
+def below_one(results: dict[str, Any]) -> list[str]:
+    """The rows of the table of cells below 1.0x, slowest first."""
+    cells = sorted((c for c in path_ratios(results) if c["ratio"] < 1.0), key=lambda c: c["ratio"])
+    return [
+        f"| {c['op']} | {c['path']} | {c['n']} | {c['mode']} | {c['ratio']:.2f}x | {c['peer']} |"
+        for c in cells
+    ]
+
+
+def path_summary(results: dict[str, Any]) -> list[str]:
+    """Per path: the range of the ratios and how many cells fall below 1.0x and 0.9x."""
+    lines = []
+    cells = path_ratios(results)
+    for path in PATHS:
+        rs = [c["ratio"] for c in cells if c["path"] == path]
+        if rs:
+            lines.append(
+                f"| {path} | {len(rs)} | {min(rs):.2f}-{max(rs):.2f}x | {sum(r < 1.0 for r in rs)} "
+                f"| {sum(r < 0.9 for r in rs)} |"
+            )
+    return lines
+
+
+# ---------------------------------------------------------------------------------------------------
+# Per-call overhead at N = 1
+
+
+OVERHEAD_OPS = ("quaternion_to_matrix", "matrix_to_quaternion")
+PUBLIC, UNCHECKED, CORE = "public function", "conversion, no validation", "core formula"
+
+
+def overhead(repeats: int, block_s: float) -> dict[str, Any]:
+    """The per-call cost of validation and dispatch at N = 1, per backend: the public conversion, the
+    same conversion without the argument checks (``_CONVERSIONS``: torch's ``autograd.Function``,
+    jax's ``custom_jvp`` or formula, numpy's formula) and the bare core formula
+    (``diffquat._core.<op>(xp, x)``), float32, side by side in rotated blocks. public - unchecked is
+    the validation (conversion, shape and dtype checks, the non-finite-row rule); unchecked - core
+    is the dispatch (torch: the ``autograd.Function``; jax: the ``custom_jvp``). Under ``jax.jit`` the
+    checks run once at trace time: what remains is the program's own difference."""
+
+    out: dict[str, Any] = {}
+    for name in OVERHEAD_OPS:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            timed = time_all(_overhead_calls(name), repeats, block_s)
+        entry: dict[str, dict[str, Any]] = {}
+        for key, t in timed.items():
+            backend, label = key.split("|")
+            entry.setdefault(backend, {})[label] = t.__dict__
+        out[name] = entry
+        print(f"overhead {name} done", file=sys.stderr, flush=True)
+    return out
+
+
+def _overhead_calls(name: str) -> dict[str, Callable[[], Any]]:
+    """The calls that :func:`overhead` times for one conversion, keyed ``"<backend>|<form>"``."""
+    import jax
+    import torch
+
+    import diffquat.jax as dqj
+    import diffquat.numpy as dqn
+    import diffquat.torch as dqt
+    from diffquat import _core
+
+    x = make_input("quaternion" if name == "quaternion_to_matrix" else "matrix", unit_quaternions(1))
+    x = x.astype(np.float32)
+    xt, xj = torch.from_numpy(x), jax.numpy.asarray(x)
+    leaf = xt.clone().requires_grad_(True)
+    core = getattr(_core, name)
+
+    def forms(module: Any, xp: Any) -> dict[str, Callable[[Any], Any]]:
+        conversion = module._CONVERSIONS[name]
+        return {
+            PUBLIC: getattr(module, name),
+            UNCHECKED: lambda v: conversion(xp, v),
+            CORE: lambda v: core(xp, v),
+        }
+
+    def backward(fn: Callable[[Any], Any]) -> Callable[[], Any]:
+        cot = torch.ones_like(fn(xt))
+        return lambda: torch.autograd.grad(fn(leaf), leaf, cot)
+
+    def jitted(fn: Callable[[Any], Any]) -> Callable[[], Any]:
+        compiled = jax.jit(fn)
+        return lambda: _sync(compiled(xj))
+
+    calls: dict[str, Callable[[], Any]] = {}
+    for label, fn in forms(dqt, torch).items():
+        calls[f"torch eager, forward|{label}"] = functools.partial(_no_grad, fn, xt)
+        calls[f"torch eager, forward + backward|{label}"] = backward(fn)
+    for label, fn in forms(dqj, dqj._B.xp).items():
+        calls[f"jax eager, forward|{label}"] = functools.partial(lambda f, v: _sync(f(v)), fn, xj)
+        calls[f"jax.jit, forward|{label}"] = jitted(fn)
+    for label, fn in forms(dqn, np).items():
+        calls[f"numpy, forward|{label}"] = functools.partial(fn, x)
+    return calls
+
+
+def _no_grad(fn: Callable[[Any], Any], x: Any) -> Any:
+    import torch
+
+    with torch.no_grad():
+        return fn(x)
+
+
+def _us(seconds: float) -> str:
+    return f"{seconds * 1e6:.2f}"
+
+
+def render_overhead(results: dict[str, Any]) -> list[str]:
+    """The N = 1 overhead section of ``RESULTS.md`` (empty where the run did not measure it)."""
+    data = results.get("overhead")
+    if not data:
+        return []
+    out = [
+        "",
+        "## Per-call overhead at N = 1 (validation and dispatch)",
+        "",
+        "float32, one rotation, medians over the same rotated blocks as the tables below (all rows of "
+        "one operation side by side). *public*: the function users call; *no validation*: the same "
+        "conversion called without the argument checks (torch: the `autograd.Function`, jax: the "
+        "`custom_jvp` or the formula, numpy: the formula); *core*: the bare formula "
+        "`diffquat._core.<op>(xp, x)`. Validation = public - no validation; dispatch = no validation "
+        "- core. Under `jax.jit` the checks run once, at trace time. Times in µs.",
+        "",
+        "| op | backend | public | no validation | core | validation | dispatch | public - core |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for name, entry in data.items():
+        for backend, rows in entry.items():
+            pub, unc, core = (rows[k]["median_s"] for k in (PUBLIC, UNCHECKED, CORE))
+            out.append(
+                f"| {name} | {backend} | {_us(pub)} | {_us(unc)} | {_us(core)} | {_us(pub - unc)} "
+                f"| {_us(unc - core)} | {_us(pub - core)} |"
+            )
+        ts = results["ops"].get(name, {}).get("timings", {})
+        for mode, per_n in ts.items():
+            one = per_n.get("1", {})
+            if "diffquat torch.compile" in one and HAND in one:
+                pub, core = one["diffquat torch.compile"]["median_s"], one[HAND]["median_s"]
+                out.append(
+                    f"| {name} | torch.compile, {mode} (from the table below) | {_us(pub)} | — | {_us(core)} "
+                    f"| — | — | {_us(pub - core)} |"
+                )
+    return out
 
 
 def render(results: dict[str, Any], gpu_results: dict[str, Any] | None = None) -> str:
@@ -891,9 +1032,14 @@ def render(results: dict[str, Any], gpu_results: dict[str, Any] | None = None) -
             else []
         ),
         (
-            "GPU figures (Triton kernels on CUDA): still to be measured; this run had no GPU."
+            "GPU figures: still to be measured; this run had no GPU."
             if gpu_results is None
-            else f"GPU figures: the last section ({gpu_results['machine']['device']}, a separate run)."
+            else f"GPU figures: the last section ({gpu_results['machine']['device']}, a separate run"
+            + (
+                "; measured with diffquat's former Triton kernels, since removed: to be re-measured)."
+                if gpu_results.get("eager_path") is None
+                else ")."
+            )
         ),
         "",
         "## Machine and versions",
@@ -904,11 +1050,27 @@ def render(results: dict[str, Any], gpu_results: dict[str, Any] | None = None) -
         "",
         "![ns per rotation against N](results.png)",
         "",
-        "## Key ratios (targets of issue 4)",
+        "## Key ratios: the fastest peer on each path / diffquat",
         "",
-        "| op | mode | N | ratios |",
-        "|---|---|---|---|",
+        "Above 1: diffquat is faster. Paths: diffquat torch eager and `torch.compile` against the torch "
+        "peers (roma, kornia, pytorch-kinematics, pypose, torchlie; called eagerly, as their users call "
+        "them), `jax.jit` against jaxlie (jit), numpy against scipy (forward only). The last column is "
+        "diffquat under `torch.compile` over the core formula hand-written and compiled. Below 1.0x in bold.",
+        "",
+        "| path | cells | range | below 1.0x | below 0.9x |",
+        "|---|---|---|---|---|",
+        *path_summary(results),
+        "",
+        "| op | mode | N | " + " | ".join(PATHS) + " | compiled / hand-written |",
+        "|---" * (len(PATHS) + 4) + "|",
         *ratios(results),
+        "",
+        "### Cells below 1.0x",
+        "",
+        "| op | path | N | mode | fastest peer / diffquat | fastest peer |",
+        "|---|---|---|---|---|---|",
+        *(below_one(results) or ["| none | | | | | |"]),
+        *render_overhead(results),
     ]
     sizes = results["sizes"]
     for name, entry in results["ops"].items():
