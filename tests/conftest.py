@@ -27,13 +27,16 @@ from cases import CASES, DTYPES, HOST_DTYPES, OPS, concatenate_cases, host_cast
 # devices for the sharding tests (shard_map, pmap, sharded jit: tests/test_jax_deploy.py); it must be
 # set before anything starts jax's backend, and single-device programs still run on the first.
 jax.config.update("jax_num_cpu_devices", 2)
-# XLA's classic CPU emitters, not its default fusion emitters: compiling is most of what the jax tests
-# cost, and the classic emitters compile the same programs in about half the time (a jax-heavy third
-# of the suite: 366 s -> 250 s). The values do not depend on it: test_values.py checks every op at
-# every value case under the default emitters too, in a subprocess, against the same oracles. Read
-# when jax starts its CPU backend (at first use, below); a choice of the caller's is kept.
-if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_cpu_use_fusion_emitters=false".strip()
+# XLA compiles the suite's programs for speed of compiling, not of running: its classic CPU emitters,
+# not its default fusion emitters (about half the compile time: a jax-heavy third of the suite 366 s
+# -> 250 s), and LLVM at -O0 (a third off again: jax's check_grads of three ops 55 s -> 36 s). Neither
+# changes what IEEE arithmetic computes, and test_values.py checks every op at every value case under
+# XLA's defaults too, in a subprocess, against the same oracles. Read when jax starts its CPU backend
+# (at first use, below); a flag the caller set is kept.
+COMPILE_SPEED_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_backend_optimization_level=0")
+for _flag in COMPILE_SPEED_FLAGS:
+    if _flag.split("=")[0] not in os.environ.get("XLA_FLAGS", ""):
+        os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_flag}".strip()
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 jax.config.update("jax_numpy_rank_promotion", "raise")

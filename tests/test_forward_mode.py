@@ -149,35 +149,52 @@ def test_torch_forward_mode_matches_reverse_mode_and_finite_differences(
         assert_rows_close(a, b, 1e-10, smooth)
 
 
+def basis_tangents(xs: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, ...]:
+    """For each input component j (of all inputs together, K of them), the tangent that is 1 at that
+    component in every row and 0 elsewhere: (K, *x.shape) per input. The rows being independent,
+    ``jvp`` along the k-th is the k-th column of every row's own Jacobian."""
+    sizes = [x[0].numel() for x in xs]
+    out = []
+    for i, x in enumerate(xs):
+        basis = torch.zeros(sum(sizes), len(x), sizes[i], dtype=x.dtype)
+        basis[sum(sizes[:i]) + torch.arange(sizes[i]), :, torch.arange(sizes[i])] = 1
+        out.append(basis.reshape(sum(sizes), *x.shape))
+    return tuple(out)
+
+
 @torch_only
 @gradients
 @base_rows
 def test_torch_compiled_forward_mode_equals_eager(op: Op, backend: Backend, dtype: str) -> None:
-    """Under ``torch.compile(fullgraph=True)``: ``jvp`` on all the edge cases and a dense ``jacfwd`` on
-    one element of each, in one compiled function, equal to eager (the first test proves eager right).
+    """Under ``torch.compile(fullgraph=True)``: ``vmap`` over ``jvp`` along each input component at
+    once, so every row's whole Jacobian in forward mode (forward-mode rules and the batching rules
+    over them) at all the edge cases, in one compiled function, equal to eager ``vmap(jacfwd)`` (which
+    the first test proves right), and its contraction with a random tangent equal to eager ``jvp``.
 
-    (Not ``vmap(jacfwd)``: torch 2.13 fails to compile it even for ``sin``, pytorch/pytorch#160508.)"""
+    (One transform, not ``jvp`` and ``jacfwd`` compiled apart: those took twice as long to trace, and
+    ``vmap(jacfwd)`` fails to compile in torch 2.13 even for ``sin``, pytorch/pytorch#160508.)"""
     fn = op.gradient_function(backend.module)
-    xs, smooth, firsts = edge_batch(op)
+    xs, smooth, _ = edge_batch(op)
     tx = tuple(map(torch.tensor, xs))
-    tt = tuple(map(torch.tensor, directions(xs, seed=1)))
-    sample = tuple(x[firsts] for x in tx)
-    argnums = tuple(range(len(tx)))
+    ts = directions(xs, seed=1)
+    basis = basis_tangents(tx)
 
-    def forward_mode(xs: tuple[torch.Tensor, ...], sample: tuple[torch.Tensor, ...]) -> Any:
-        return torch.func.jvp(fn, xs, tt)[1], torch.func.jacfwd(fn, argnums=argnums)(*sample)
+    def columns(xs: tuple[torch.Tensor, ...], basis: tuple[torch.Tensor, ...]) -> torch.Tensor:
+        return torch.func.vmap(lambda *t: torch.func.jvp(fn, xs, t)[1])(*basis)
 
     torch._dynamo.reset()  # as in test_transforms: one code object for every op's test function
-    compiled = torch.compile(forward_mode, backend=COMPILE_BACKEND, fullgraph=True, dynamic=False)
-    (tangent, jac), (eager_tangent, eager_jac) = compiled(tx, sample), forward_mode(tx, sample)
-    assert bool(torch.all(torch.isfinite(tangent)))
-    assert_rows_close(tangent, eager_tangent, 1e-12, smooth)
-    k, n_out, diag = len(firsts), eager_tangent[0].numel(), torch.arange(len(firsts))
-    for a, b, x in zip(jac, eager_jac, sample, strict=True):
-        # (k, *out, k, *in) -> the Jacobian of each sampled element on itself, (k, n_out, n_in)
-        a, b = (j.reshape(k, n_out, k, x[0].numel())[diag, :, diag] for j in (a, b))
-        assert bool(torch.all(torch.isfinite(a)))
-        assert_rows_close(a, b, 1e-12, smooth[firsts])
+    compiled = torch.compile(columns, backend=COMPILE_BACKEND, fullgraph=True, dynamic=False)
+    got = compiled(tx, basis)  # (K, N, *out)
+    assert bool(torch.all(torch.isfinite(got)))
+    n = len(xs[0])
+    jac = got.reshape(len(got), n, -1).permute(1, 2, 0)  # (N, n_out, K)
+    argnums = tuple(range(len(tx)))
+    eager = torch.func.vmap(torch.func.jacfwd(fn, argnums=argnums))(*tx)
+    eager_jac = torch.cat([j.reshape(n, jac.shape[1], -1) for j in eager], dim=-1)
+    assert_rows_close(jac, eager_jac, 1e-12, smooth)
+    flat_t = torch.tensor(np.concatenate([t.reshape(n, -1) for t in ts], axis=-1))
+    tangent = torch.func.jvp(fn, tx, tuple(map(torch.tensor, ts)))[1]
+    assert_rows_close(torch.einsum("nok,nk->no", jac, flat_t), tangent.reshape(n, -1), 1e-12, smooth)
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -26,7 +26,7 @@ from cases import (
     uniform_quaternions,
     value_batches,
 )
-from conftest import Backend, case_rows
+from conftest import COMPILE_SPEED_FLAGS, Backend, case_rows
 
 WXYZ_TO_XYZW = [1, 2, 3, 0]
 XYZW_TO_WXYZ = [3, 0, 1, 2]
@@ -147,7 +147,7 @@ def check_properties(op: Op, dtype: str, out: np.ndarray) -> None:
         assert not np.any(negative)
 
 
-# What test_jax_values_hold_under_xlas_default_cpu_emitters runs in its subprocess: every op at every
+# What test_jax_values_hold_under_xlas_default_flags runs in its subprocess: every op at every
 # value case, one call per op and dtype, saved as float64.
 _DEFAULT_EMITTERS = """
 import sys
@@ -167,12 +167,14 @@ np.savez(sys.argv[1], **out)
 """
 
 
-def test_jax_values_hold_under_xlas_default_cpu_emitters(tmp_path: Path) -> None:
-    """The suite runs jax with XLA's classic CPU emitters, which compile in half the time
-    (tests/conftest.py); users run XLA's default fusion emitters. Every op at every value case, in
+def test_jax_values_hold_under_xlas_default_flags(tmp_path: Path) -> None:
+    """The suite runs jax with XLA's classic CPU emitters and LLVM at -O0, which compile faster
+    (tests/conftest.py); users run XLA's defaults. Every op at every value case, in
     every dtype, evaluated by a jax that runs the defaults, is the oracle's within the tolerance of
     test_values, so what test_values asserts holds on the default emitters too."""
-    flags = os.environ.get("XLA_FLAGS", "").replace("--xla_cpu_use_fusion_emitters=false", "")
+    flags = os.environ.get("XLA_FLAGS", "")
+    for flag in COMPILE_SPEED_FLAGS:
+        flags = flags.replace(flag, "")
     path = tmp_path / "values.npz"
     subprocess.run(
         [sys.executable, "-c", _DEFAULT_EMITTERS, str(path)],
