@@ -18,6 +18,7 @@ import functools
 from collections.abc import Callable
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import mpmath
 import numpy as np
@@ -415,7 +416,8 @@ def test_right_side_first_and_second_derivatives(name: str) -> None:
     assert torch.autograd.gradcheck(torch_fn, ts, eps=1e-6, atol=1e-6, rtol=1e-5, fast_mode=True)
     assert torch.autograd.gradgradcheck(torch_fn, ts, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=True)
     jax_fn = functools.partial(getattr(BACKENDS["jax"].module, name), side="right")
-    check_grads(jax_fn, tuple(jnp.asarray(x) for x in xs), order=2, modes=("fwd", "rev"), eps=1e-6)
+    # under jax.jit, as in test_grads.test_jax_check_grads: each derivative program compiles once
+    check_grads(jax.jit(jax_fn), tuple(jnp.asarray(x) for x in xs), order=2, modes=("fwd", "rev"), eps=1e-6)
 
 
 # Both sides of the series threshold (|w| = 1), and beyond pi towards 2 pi (J_l only: its inverse's
@@ -436,9 +438,8 @@ def test_jacobian_derivatives_across_the_threshold_and_beyond_pi(name: str) -> N
     t = torch.tensor(omega, requires_grad=True)
     assert torch.autograd.gradcheck(fn, (t,), eps=1e-6, atol=1e-6, rtol=1e-5, fast_mode=True)
     assert torch.autograd.gradgradcheck(fn, (t,), eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=True)
-    check_grads(
-        getattr(BACKENDS["jax"].module, name), (jnp.asarray(omega),), order=2, modes=("fwd", "rev"), eps=1e-6
-    )
+    jax_fn = jax.jit(getattr(BACKENDS["jax"].module, name))
+    check_grads(jax_fn, (jnp.asarray(omega),), order=2, modes=("fwd", "rev"), eps=1e-6)
 
 
 # Angles for the float32 derivatives: every scale up to pi (and 6 for J_l), both sides of t = 1.
@@ -448,7 +449,7 @@ DERIVATIVE_ANGLES = np.array([0.0, 1e-12, 1e-8, 1e-4, 1e-3, 1e-2, 0.02, 0.05, 0.
 
 def _eager_jacobian(fn: Callable[[Any], Any], omega: torch.Tensor) -> torch.Tensor:
     """d fn(w)[n, i, j] / d w[n], shape (N, 3, 3, 3), by eager reverse mode (one backward per entry;
-    rows are independent): what torch's eager autograd, the C kernels' backward on the CPU, computes."""
+    rows are independent): what a training loop's ``loss.backward()`` computes."""
     w = omega.clone().requires_grad_(True)
     out = fn(w)
     rows = [
@@ -462,9 +463,9 @@ def _eager_jacobian(fn: Callable[[Any], Any], omega: torch.Tensor) -> torch.Tens
 def test_float32_derivatives_are_as_accurate_as_the_values(name: str, path: str) -> None:
     """torch float32 Jacobians of the entries (reverse mode) within a few ulps of the largest, against
     the float64 evaluation of the same float32 inputs (itself checked against finite differences by
-    the table), by torch.func (the formula differentiated) and by eager autograd (the C kernels'
-    backward): the series where the closed forms cancel keep the derivatives exact too (measured at
-    most 2.1 ulps; 1e3 and more where the series stops at t ~ eps^(1/4) = 0.02, the usual choice)."""
+    the table), by torch.func and by eager autograd (``backward()``, one entry at a time): the series
+    where the closed forms cancel keep the derivatives exact too (measured at most 2.1 ulps; 1e3 and
+    more where the series stops at t ~ eps^(1/4) = 0.02, the usual choice)."""
     fn = getattr(BACKENDS["torch"].module, name)
     omega = torch.from_numpy(
         (DERIVATIVE_ANGLES[:, None, None] * AXES[None]).reshape(-1, 3).astype(np.float32)
