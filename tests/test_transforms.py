@@ -100,13 +100,15 @@ def test_torch_compile_fullgraph_forward_and_backward(op: Op, backend: Backend, 
 
 @torch_only
 @gradients
+@base_rows
 def test_torch_compile_dynamic_shapes(op: Op, backend: Backend, dtype: str) -> None:
     """Under ``torch.compile(dynamic=True)`` every size is symbolic, the trailing (3, 3) or (4,) too:
     the argument checks must still pass (they once compared sizes in a way Dynamo could not resolve,
     and raised the shape error for a valid input). Two batch sizes through one compiled graph.
 
     Dynamo and AOTAutograd (``aot_eager``) are where shapes are symbolic and the checks run; inductor's
-    code generation, which took 8 s per op here, is tested with static shapes above."""
+    code generation, which took 8 s per op here, is tested with static shapes above. The table's
+    keyword variants (``variant_of``) run the same argument checks as their base rows, as above."""
     fn = op.gradient_function(backend.module)
     xs, _, _ = setup(op)
     torch._dynamo.reset()
