@@ -85,49 +85,89 @@ def reverse_jacobians(backend: Backend, fn: Fn, xs: list[np.ndarray], batch: Bat
     else:
         grads = _jax_reverse_rows(fn, nb)(*[jnp.asarray(x) for x in xs])
         per_input = [list(np.asarray(g)) for g in grads]
-    n_in = [int(np.prod(x.shape[nb:])) for x in xs]
+    return _stack_rows(per_input, xs, batch)
+
+
+def _stack_rows(per_input: list[list[np.ndarray]], xs: list[np.ndarray], batch: Batch) -> list[np.ndarray]:
+    """Per input, its gradients for each one-hot cotangent -> Jacobians ``(*batch, n_out, n_in)``."""
+    n_in = [int(np.prod(x.shape[len(batch) :])) for x in xs]
     return [
         np.stack([g.reshape(*batch, n) for g in rows_i], axis=-2)
         for rows_i, n in zip(per_input, n_in, strict=True)
     ]
 
 
-def evaluate_with(backend: Backend, fn: Fn, xs: list[np.ndarray], i: int, value: np.ndarray) -> np.ndarray:
-    """``fn`` in float64 on ``xs`` with input ``i`` replaced by ``value``."""
-    moved = [*xs]
-    moved[i] = value
-    return backend.to_numpy(fn(*(backend.array(m, "float64") for m in moved)))
-
-
-def fd_jacobians(backend: Backend, fn: Fn, xs: list[np.ndarray], batch: Batch) -> list[np.ndarray]:
-    """The same Jacobians by central finite differences, the step scaled to each element's input."""
+def _perturbed(
+    xs: list[np.ndarray], batch: Batch
+) -> tuple[list[np.ndarray], Callable[[np.ndarray], list[np.ndarray]]]:
+    """Central finite differences, laid out for one call: every input moved by +h and -h along each of
+    its components, stacked on a new leading axis (the ops are batched over any leading dimensions), and
+    the function that turns the outputs of that call, ``(P, *batch, *out)``, into the Jacobians."""
     nb = len(batch)
-    out = []
+    moved: list[list[np.ndarray]] = [[] for _ in xs]
+    steps = []
     for i, x in enumerate(xs):
         flat = x.reshape(*batch, int(np.prod(x.shape[nb:])))
         # Relative to the input's norm (scale-invariant ops see 1e-20 ... 1e20), absolute where the input
         # is exactly zero (a zero rotation vector or Euler angles are ordinary, smooth inputs).
         norm = np.linalg.norm(flat, axis=-1)
         h = 1e-6 * np.where(norm > 0, norm, 1.0)
-        cols = []
+        steps.append((flat.shape[-1], h))
         for j in range(flat.shape[-1]):
             step = np.zeros_like(flat)
             step[..., j] = h
-            plus = evaluate_with(backend, fn, xs, i, (flat + step).reshape(x.shape))
-            minus = evaluate_with(backend, fn, xs, i, (flat - step).reshape(x.shape))
-            n_out = int(np.prod(plus.shape[nb:]))
-            cols.append((plus - minus).reshape(*batch, n_out) / (2 * h[..., None]))
-        out.append(np.stack(cols, axis=-1))
-    return out
+            for sign in (1.0, -1.0):
+                for k, other in enumerate(xs):
+                    moved[k].append((flat + sign * step).reshape(x.shape) if k == i else other)
+
+    def assemble(values: np.ndarray) -> list[np.ndarray]:
+        out, p = [], 0
+        n_out = int(np.prod(values.shape[1 + nb :]))
+        for n_in, h in steps:
+            cols = []
+            for _ in range(n_in):
+                plus, minus = values[p].reshape(*batch, n_out), values[p + 1].reshape(*batch, n_out)
+                cols.append((plus - minus) / (2 * h[..., None]))
+                p += 2
+            out.append(np.stack(cols, axis=-1))
+        return out
+
+    return [np.stack(m) for m in moved], assemble
+
+
+def fd_jacobians(backend: Backend, fn: Fn, xs: list[np.ndarray], batch: Batch) -> list[np.ndarray]:
+    """The same Jacobians by central finite differences, the step scaled to each element's input, all
+    the moved inputs evaluated in one call."""
+    stacked, assemble = _perturbed(xs, batch)
+    return assemble(backend.to_numpy(fn(*(backend.array(m, "float64") for m in stacked))))
+
+
+_BOTH: dict[tuple[Fn, int], Fn] = {}
+
+
+def jacobians(backend: Backend, fn: Fn, xs: list[np.ndarray], batch: Batch) -> list[np.ndarray]:
+    """:func:`reverse_jacobians` and then :func:`fd_jacobians` of every input; on jax from one compiled
+    program (the pullbacks and the moved evaluations together: the programs compiled per op and shape
+    are what the jax half of the finite-difference test costs)."""
+    if backend.name == "torch":
+        return [*reverse_jacobians(backend, fn, xs, batch), *fd_jacobians(backend, fn, xs, batch)]
+    nb = len(batch)
+    if (fn, nb) not in _BOTH:
+        rows = _jax_reverse_rows(fn, nb)
+        _BOTH[(fn, nb)] = jax.jit(lambda xs, moved: (rows(*xs), fn(*moved)))
+    stacked, assemble = _perturbed(xs, batch)
+    grads, values = _BOTH[(fn, nb)]([jnp.asarray(x) for x in xs], [jnp.asarray(m) for m in stacked])
+    reverse = _stack_rows([list(np.asarray(g)) for g in grads], xs, batch)
+    return [*reverse, *assemble(np.asarray(values))]
 
 
 _JITTED: dict[str, Fn] = {}
 
 
 def gradient_function(op: Op, backend: Backend) -> Fn:
-    """The op's gradient function on ``backend``; on jax under ``jax.jit``, as users run it, and so
-    that hundreds of finite-difference calls stay quick: one per op for the session, since jax caches
-    a compiled program (and those of its ``vjp``) per function and input shape."""
+    """The op's gradient function on ``backend``; on jax under ``jax.jit``, as users run it: one per
+    op for the session, since jax caches a compiled program (and those of its ``vjp``) per function
+    and input shape."""
     if backend.name == "torch":
         return op.gradient_function(backend.module)
     if op.id not in _JITTED:
@@ -161,10 +201,7 @@ def test_gradient_matches_finite_differences(op: Op, backend: Backend, dtype: st
         op,
         backend,
         case,
-        lambda fn, xs, batch: [
-            *reverse_jacobians(backend, fn, xs, batch),
-            *fd_jacobians(backend, fn, xs, batch),
-        ],
+        lambda fn, xs, batch: jacobians(backend, fn, xs, batch),
     )
     xs, ad, fd = arrays[:n], arrays[n : 2 * n], arrays[2 * n :]
     batch = batch_shape(case)
