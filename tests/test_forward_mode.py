@@ -217,7 +217,8 @@ def test_jax_jit_vmap_grad_jvp_and_jacobians(op: Op, backend: Backend, dtype: st
     arrays = tuple(map(jnp.asarray, xs))
     argnums = tuple(range(len(xs)))
     loss = scalar_loss(fn, jnp.asarray(np.random.default_rng(3).normal(size=len(xs[0]))))
-    w = jnp.asarray(np.random.default_rng(7).normal(size=np.shape(fn(*arrays))))
+    eager = fn(*arrays)
+    w = jnp.asarray(np.random.default_rng(7).normal(size=np.shape(eager)))
 
     @jax.jit
     def transforms(xs: tuple[Any, ...]) -> dict[str, Any]:
@@ -230,7 +231,6 @@ def test_jax_jit_vmap_grad_jvp_and_jacobians(op: Op, backend: Backend, dtype: st
         }
 
     out = transforms(arrays)
-    eager = fn(*arrays)
     close_values(op, out["value"], eager, smooth)
     close_values(op, out["vmap"], eager, smooth)
     for a, b in zip(out["grad"], jax.grad(loss, argnums=argnums)(*arrays), strict=True):
