@@ -139,7 +139,7 @@ CASES = [
     Case("batch_empty", _fixed(np.zeros((0, 4)))),
 ]
 CASES_BY_NAME = {c.name: c for c in CASES}
-# Cases for the expensive checks (gradcheck, jax.check_grads, compile): the named edge cases.
+# Cases for the expensive checks (gradcheck, jax's second order, compile): the named edge cases.
 EDGE_CASES = ("random", "identity", "half_turns", "near_half_turns", "near_identity", "batch_3x1x2")
 
 
@@ -232,11 +232,13 @@ class Op:
         of the same map (``so3_exp`` is ``axis_angle_to_matrix``, ``matrix_fisher_mode`` is
         ``special_procrustes``: one core function; tests/test_api.py checks that the two names give
         the same values). Values, properties, errors, per-case gradients against finite differences,
-        captures and exports run on it; the compile-heavy checks of the derivatives (jax
-        ``check_grads``, ``torch.compile``, compiled forward mode, jit/vmap/grad: tens of seconds per
-        row) run on the base row only (``base_rows``), where the same map is checked.
-    second_order_modes: the modes in which jax's ``check_grads`` checks the second order (the first
-        is checked in both): the iterative means check it in reverse mode, where XLA compiles each
+        captures and exports run on it; the compile-heavy checks of the derivatives (jax's second
+        order, ``torch.compile``, compiled forward mode, jit/vmap/grad: tens of seconds per row) run
+        on the base row only (``base_rows``, ``Op.variant_of`` in test_grads.test_jax_derivatives),
+        where the same map is checked.
+    second_order_modes: the modes in which jax's second order is checked as ``check_grads`` checks
+        it (``jvp`` of ``jvp``, ``vjp`` of ``vjp``; the first order is checked in both): the iterative
+        means check it in reverse mode, where XLA compiles each
         transformed program of their loops for 5-10 s and forward-over-forward added 30 s a row.
     """
 

@@ -17,9 +17,8 @@ import numpy as np
 import pytest
 import torch
 import torch.autograd.forward_ad as fwAD
-from cases import CASES_BY_NAME, EDGE_CASES, Op, base_rows, gradients, jax_only, torch_only
+from cases import CASES_BY_NAME, EDGE_CASES, Op, base_rows, gradients, torch_only
 from conftest import Backend
-from test_transforms import close_derivatives, close_values, scalar_loss
 
 import diffquat.jax.nn as jnn
 import diffquat.torch.nn as tnn
@@ -199,61 +198,6 @@ def test_torch_compiled_forward_mode_equals_eager(op: Op, backend: Backend, dtyp
 
 # ---------------------------------------------------------------------------------------------------
 # jax
-
-
-@jax_only
-@gradients
-@base_rows
-def test_jax_jit_vmap_grad_jvp_and_jacobians(op: Op, backend: Backend, dtype: str) -> None:
-    """``jax.jit``, ``vmap``, ``grad`` and ``vmap(jacfwd)`` / ``vmap(jacrev)`` (``vmap`` over ``jvp`` and
-    over ``vjp``) at every edge case: compiled as users run them, in one program (each transform
-    compiled on its own cost a third more, compilation being what these tests cost), against eager
-    execution, reverse mode and central differences: each row's Jacobian contracted with a random
-    tangent is the central difference along it, and adjoint to the reverse Jacobian contracted with a
-    random cotangent. (``jvp`` and ``vjp`` compiled on their own: ``test_grads.test_jax_check_grads``.)"""
-    fn = op.gradient_function(backend.module)
-    xs, smooth, _ = edge_batch(op)
-    ts = directions(xs, seed=1)
-    arrays = tuple(map(jnp.asarray, xs))
-    argnums = tuple(range(len(xs)))
-    loss = scalar_loss(fn, jnp.asarray(np.random.default_rng(3).normal(size=len(xs[0]))))
-    eager = fn(*arrays)
-    w = jnp.asarray(np.random.default_rng(7).normal(size=np.shape(eager)))
-
-    @jax.jit
-    def transforms(xs: tuple[Any, ...]) -> dict[str, Any]:
-        return {
-            "value": fn(*xs),
-            "vmap": jax.vmap(fn)(*xs),
-            "grad": jax.grad(loss, argnums=argnums)(*xs),
-            "jacfwd": jax.vmap(jax.jacfwd(fn, argnums))(*xs),
-            "jacrev": jax.vmap(jax.jacrev(fn, argnums))(*xs),
-        }
-
-    out = transforms(arrays)
-    close_values(op, out["value"], eager, smooth)
-    close_values(op, out["vmap"], eager, smooth)
-    for a, b in zip(out["grad"], jax.grad(loss, argnums=argnums)(*arrays), strict=True):
-        close_derivatives(a, b, smooth)
-    # each row's Jacobian per input, (N, n_out, n_in): J t and J^T w row by row
-    n = len(xs[0])
-    fwd = [np.asarray(j).reshape(n, np.size(w) // n, -1) for j in out["jacfwd"]]
-    rev = [np.asarray(j).reshape(n, np.size(w) // n, -1) for j in out["jacrev"]]
-    flat_w = np.asarray(w).reshape(n, -1)
-    tangent = sum(np.einsum("noi,ni->no", j, t.reshape(n, -1)) for j, t in zip(fwd, ts, strict=True))
-    evaluate = jax.jit(lambda moved: fn(*moved))
-    check_tangent(
-        np.asarray(tangent).reshape(np.shape(w)),
-        lambda moved: np.asarray(evaluate(tuple(map(jnp.asarray, moved)))),
-        lambda _: [np.einsum("noi,no->ni", j, flat_w).reshape(x.shape) for j, x in zip(rev, xs, strict=True)],
-        xs,
-        ts,
-        smooth,
-        w=np.asarray(w),
-    )
-    for a, b in zip(out["jacfwd"], out["jacrev"], strict=True):
-        assert bool(jnp.all(jnp.isfinite(a)))
-        assert_rows_close(a, b, 1e-10, smooth)
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -1,5 +1,6 @@
 """Gradients: correct (against finite differences), not merely finite, at every named case; torch's
-gradcheck/gradgradcheck and jax's check_grads; and torch == jax. All in float64."""
+gradcheck/gradgradcheck, jax's second order as check_grads checks it, jit/vmap/grad/jacfwd/jacrev on
+jax; and torch == jax. All in float64; finite, and equal to the plain call's value, in every dtype."""
 
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ from cases import (
     GRAD_DTYPE,
     Case,
     Op,
-    base_rows,
+    concatenate_cases,
     edge_cases,
     gradients,
     jax_only,
@@ -29,6 +30,8 @@ from cases import (
 )
 from conftest import BACKENDS, Backend, rows_by_case
 from jax.test_util import check_grads
+from test_forward_mode import assert_rows_close
+from test_transforms import close_values
 
 Fn = Callable[..., Any]
 
@@ -58,17 +61,6 @@ def _jax_reverse_rows(fn: Fn, nb: int) -> Fn:
 
         _REVERSE[(fn, nb)] = jax.jit(rows)
     return _REVERSE[(fn, nb)]
-
-
-_PULLBACK: dict[Fn, Fn] = {}
-
-
-def _jax_pullback(fn: Fn) -> Fn:
-    """``(xs, cotangent) ->`` the pullback of ``cotangent`` through ``fn`` at ``xs``, jitted once per
-    function."""
-    if fn not in _PULLBACK:
-        _PULLBACK[fn] = jax.jit(lambda xs, cot: jax.vjp(fn, *xs)[1](cot))
-    return _PULLBACK[fn]
 
 
 def reverse_jacobians(backend: Backend, fn: Fn, xs: list[np.ndarray], batch: Batch) -> list[np.ndarray]:
@@ -142,37 +134,9 @@ def fd_jacobians(backend: Backend, fn: Fn, xs: list[np.ndarray], batch: Batch) -
     return assemble(backend.to_numpy(fn(*(backend.array(m, "float64") for m in stacked))))
 
 
-_BOTH: dict[tuple[Fn, int], Fn] = {}
-
-
 def jacobians(backend: Backend, fn: Fn, xs: list[np.ndarray], batch: Batch) -> list[np.ndarray]:
-    """:func:`reverse_jacobians` and then :func:`fd_jacobians` of every input; on jax from one compiled
-    program (the pullbacks and the moved evaluations together: the programs compiled per op and shape
-    are what the jax half of the finite-difference test costs)."""
-    if backend.name == "torch":
-        return [*reverse_jacobians(backend, fn, xs, batch), *fd_jacobians(backend, fn, xs, batch)]
-    nb = len(batch)
-    if (fn, nb) not in _BOTH:
-        rows = _jax_reverse_rows(fn, nb)
-        _BOTH[(fn, nb)] = jax.jit(lambda xs, moved: (rows(*xs), fn(*moved)))
-    stacked, assemble = _perturbed(xs, batch)
-    grads, values = _BOTH[(fn, nb)]([jnp.asarray(x) for x in xs], [jnp.asarray(m) for m in stacked])
-    reverse = _stack_rows([list(np.asarray(g)) for g in grads], xs, batch)
-    return [*reverse, *assemble(np.asarray(values))]
-
-
-_JITTED: dict[str, Fn] = {}
-
-
-def gradient_function(op: Op, backend: Backend) -> Fn:
-    """The op's gradient function on ``backend``; on jax under ``jax.jit``, as users run it: one per
-    op for the session, since jax caches a compiled program (and those of its ``vjp``) per function
-    and input shape."""
-    if backend.name == "torch":
-        return op.gradient_function(backend.module)
-    if op.id not in _JITTED:
-        _JITTED[op.id] = jax.jit(op.gradient_function(backend.module))
-    return _JITTED[op.id]
+    """:func:`reverse_jacobians` and then :func:`fd_jacobians` of every input."""
+    return [*reverse_jacobians(backend, fn, xs, batch), *fd_jacobians(backend, fn, xs, batch)]
 
 
 def by_case(
@@ -181,8 +145,8 @@ def by_case(
     """``compute(fn, xs, batch)`` on the op's float64 gradient inputs at ``case``: from one call over
     every case the op applies to (``conftest.rows_by_case``: the op and its pullback compile for one
     shape, and the finite differences take one evaluation per input component for all cases, not one
-    per case), the batch_* cases at their own shapes."""
-    fn = gradient_function(op, backend)
+    per case), the batch_* cases at their own shapes. (jax: ``test_jax_derivatives``.)"""
+    fn = op.gradient_function(backend.module)
     return rows_by_case(
         (test, op.id, backend.name),
         case,
@@ -193,6 +157,7 @@ def by_case(
     )
 
 
+@torch_only
 @gradients
 def test_gradient_matches_finite_differences(op: Op, backend: Backend, dtype: str, case: Case) -> None:
     n = len(op.gradient_inputs(case.quaternions("float64")))
@@ -203,21 +168,12 @@ def test_gradient_matches_finite_differences(op: Op, backend: Backend, dtype: st
         case,
         lambda fn, xs, batch: jacobians(backend, fn, xs, batch),
     )
-    xs, ad, fd = arrays[:n], arrays[n : 2 * n], arrays[2 * n :]
-    batch = batch_shape(case)
-    assert all(np.all(np.isfinite(j)) for j in ad)
-    if not op.smooth_at(case):
-        return  # e.g. the zero quaternion: no derivative exists, finiteness is the promise
-    for x, j_ad, j_fd in zip(xs, ad, fd, strict=True):
-        norm = np.linalg.norm(x.reshape(*batch, j_ad.shape[-1]), axis=-1)[..., None, None]
-        scale = np.where(norm > 0, norm, 1.0)
-        tol = 1e-6 * np.maximum(np.abs(j_fd).max(axis=(-1, -2), keepdims=True), 1 / scale)
-        assert np.all(np.abs(j_ad - j_fd) <= tol), float(np.max(np.abs(j_ad - j_fd) / tol))
+    _assert_jacobians_match(op, case, arrays[:n], arrays[n : 2 * n], arrays[2 * n :], batch_shape(case))
 
 
 def small(op: Op, case: Case) -> list[np.ndarray]:
     """At most 24 elements of a case (every 4th of a larger one), batch flattened to one dimension,
-    to keep the numerical Jacobians of gradcheck and check_grads small. Every input of an op gets the
+    to keep the numerical Jacobians of gradcheck small. Every input of an op gets the
     same."""
     xs, batch = op.gradient_inputs(case.quaternions("float64")), batch_shape(case)
     flat = [x.reshape(-1, *x.shape[len(batch) :]) for x in xs]
@@ -239,65 +195,246 @@ def test_torch_gradcheck_and_gradgradcheck(op: Op, backend: Backend, dtype: str,
     assert torch.autograd.gradgradcheck(fn, ts, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=True)
 
 
+# ---------------------------------------------------------------------------------------------------
+# jax: every derivative check of an op from one compiled program
+
+
+SECOND_ORDER_TOL = 1e-5  # jax's check_grads tolerance for float64, with its step, 1e-6 (relative here)
+
+
+def _rowwise(a: Any, n: int) -> np.ndarray:
+    return np.asarray(a).reshape(n, -1)
+
+
+def _row_sums(pairs: list[tuple[Any, Any]], n: int) -> np.ndarray:
+    """Per row, the sum over the pairs of the inner product of their entries."""
+    return sum((_rowwise(a, n) * _rowwise(b, n)).sum(-1) for a, b in pairs)  # type: ignore[return-value]
+
+
+def _random_like(xs: list[np.ndarray], seed: int) -> list[np.ndarray]:
+    """Random directions, each row scaled to its input's norm (the ops see 1e-20 ... 1e20 inputs and
+    some are scale-invariant), 1 where the input is zero."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for x in xs:
+        norm = np.linalg.norm(x.reshape(len(x), -1), axis=-1)
+        scale = np.where(norm > 0, norm, 1.0).reshape(-1, *([1] * (x.ndim - 1)))
+        out.append(rng.normal(size=x.shape) * scale)
+    return out
+
+
+def _jax_program(op: Op, second_order: bool, ranks: list[int], apart: bool) -> Fn:
+    """One jitted program with everything the jax derivative checks of ``op`` compare: per group of
+    inputs (every case but the batch_* ones concatenated on one batch axis, then each batch_* case at
+    its own shape), the reverse-mode Jacobians and the function at the inputs moved for central
+    differences; for the concatenated group ``vmap(jacrev)``, and, on the table's base rows, what users
+    compile: ``jit`` and ``vmap`` of the op, ``grad`` of a scalar loss, ``vmap(jacfwd)``, and the second
+    order that jax's ``check_grads`` checks (``jvp`` of ``jvp``, ``vjp`` of ``vjp``, in the op's
+    ``second_order_modes``) beside the first-order derivatives at inputs moved along a direction.
+
+    ``apart``: each of those steps as a program of its own, run one after another. For the ops whose
+    derivatives call LAPACK (eigh, SVD, LU): jaxlib 0.10's LAPACK kernels split a large batch over
+    XLA's CPU thread pool and block a pool thread until the pieces finish, so a program that runs as
+    many of them at once as the pool has threads deadlocks, every thread waiting (the one program of
+    symmetric_matrix_to_quaternion hung in half of the runs on two cores; jaxlib 0.11 compiles that
+    path out)."""
+    fn = op.gradient_function(BACKENDS["jax"].module)
+
+    def program(flat: Any, groups: Any, extra: Any, step: Callable[..., Any]) -> dict[str, Any]:
+        argnums = tuple(range(len(flat["xs"])))
+        out: dict[str, Any] = {
+            "jacrev": step(jax.vmap(jax.jacrev(fn, argnums)), *flat["xs"]),
+            "moved": step(fn, *flat["moved"]),
+            "groups": [
+                (step(_jax_reverse_rows(fn, nb), *g["xs"]), step(fn, *g["moved"]))
+                for g, nb in zip(groups, ranks, strict=True)
+            ],
+        }
+        if not second_order:
+            return out
+        xs, t1, t2 = flat["xs"], extra["t1"], extra["t2"]
+        out["value"] = step(fn, *xs)
+        out["vmap"] = step(jax.vmap(fn), *xs)
+        out["grad"] = step(
+            jax.grad(
+                lambda *xs: (extra["weights"] * fn(*xs).reshape(len(xs[0]), -1).sum(-1) ** 2).sum(), argnums
+            ),
+            *xs,
+        )
+        out["jacfwd"] = step(jax.vmap(jax.jacfwd(fn, argnums)), *xs)
+        # x +- h t2 for every row, stacked on a leading axis (the ops are batched over leading axes)
+        moved = [jnp.stack([x + extra["h"] * t, x - extra["h"] * t]) for x, t in zip(xs, t2, strict=True)]
+        if "fwd" in op.second_order_modes:
+
+            def tangent(xs: Any, ts: Any) -> Any:
+                return jax.jvp(fn, tuple(xs), tuple(ts))[1]
+
+            out["jvp_jvp"] = step(lambda *xs: jax.jvp(lambda *xs: tangent(xs, t1), xs, tuple(t2))[1], *xs)
+            out["jvp_moved"] = step(lambda *m: tangent(m, [jnp.stack([t, t]) for t in t1]), *moved)
+        if "rev" in op.second_order_modes:
+
+            def pullback(xs: Any, w: Any) -> Any:
+                return jax.vjp(fn, *xs)[1](w)
+
+            out["vjp_vjp"] = step(
+                lambda *xs: jax.vjp(lambda *xs: pullback(xs, extra["w"]), *xs)[1](tuple(extra["v"])), *xs
+            )
+            out["vjp_moved"] = step(lambda *m: pullback(m, jnp.stack([extra["w"], extra["w"]])), *moved)
+        return out
+
+    if not apart:
+        return jax.jit(lambda flat, groups, extra: program(flat, groups, extra, lambda f, *xs: f(*xs)))
+
+    def run(flat: Any, groups: Any, extra: Any) -> dict[str, Any]:
+        return program(flat, groups, extra, lambda f, *xs: jax.block_until_ready(jax.jit(f)(*xs)))
+
+    return run
+
+
+def _cases_of(bad: np.ndarray, parts: list[tuple[Case, slice, Batch]]) -> list[str]:
+    return [case.name for case, rows, _ in parts if np.any(bad[rows])]
+
+
+def _assert_jacobians_match(
+    op: Op, case: Case, xs: list[np.ndarray], ad: list[np.ndarray], fd: list[np.ndarray], batch: Batch
+) -> None:
+    """Reverse-mode Jacobians ``(*batch, n_out, n_in)`` finite at ``case``, and where the op is smooth
+    there equal to central differences to 1e-6 of the largest entry (or of 1/|x|, for a Jacobian that
+    is zero at a scale-invariant op)."""
+    assert all(np.all(np.isfinite(j)) for j in ad), f"case {case.name}: non-finite derivative"
+    if not op.smooth_at(case):
+        return  # e.g. the zero quaternion: no derivative exists, finiteness is the promise
+    for x, j_ad, j_fd in zip(xs, ad, fd, strict=True):
+        norm = np.linalg.norm(x.reshape(*batch, j_ad.shape[-1]), axis=-1)[..., None, None]
+        scale = np.where(norm > 0, norm, 1.0)
+        tol = 1e-6 * np.maximum(np.abs(j_fd).max(axis=(-1, -2), keepdims=True), 1 / scale)
+        err = np.abs(j_ad - j_fd)
+        assert np.all(err <= tol), f"case {case.name}: error / tolerance {float(np.max(err / tol))}"
+
+
 @jax_only
 @gradients
-@base_rows
-def test_jax_check_grads(op: Op, backend: Backend, dtype: str) -> None:
-    """``check_grads`` to second order, forward and reverse (the second order in
-    ``op.second_order_modes``), at every edge case where the op is smooth, all in one batch (each
-    element is checked on its own: the ops are row by row, and check_grads compares the directional
-    derivatives element by element), of the op under ``jax.jit`` as users run it: each derivative
-    program compiles once for the batch (eagerly, jax compiled each of their many operations one by
-    one: 31 s against 17 s for four ops). A failure is traced back to the case it is in."""
-    cases = [c for c in CASES if c.name in EDGE_CASES and op.applies(c) and op.smooth_at(c)]
-    parts = [small(op, case) for case in cases]
-    fn = jax.jit(op.gradient_function(backend.module))
+def test_jax_derivatives(op: Op, backend: Backend, dtype: str) -> None:
+    """Every derivative check of an op on jax, from one program compiled for it (``_jax_program``: what
+    the checks cost is compiling, and one program of all of them compiles in less than a third of the
+    time the programs of each check took apart):
 
-    def check(xs: list[np.ndarray]) -> None:
-        args = tuple(jnp.asarray(x) for x in xs)
-        check_grads(fn, args, order=2, modes=op.second_order_modes, eps=1e-6)
-        first_only = tuple(m for m in ("fwd", "rev") if m not in op.second_order_modes)
-        if first_only:
-            check_grads(fn, args, order=1, modes=first_only, eps=1e-6)
+    - at every case, the reverse-mode Jacobian of each batch element finite, and where the op is smooth
+      equal to central differences; the batch_* cases at their own shapes;
+    - on the base rows (``Op.variant_of``), at the edge cases: ``jit`` and ``vmap`` equal to eager,
+      ``vmap(jacfwd)`` equal to ``vmap(jacrev)`` (the adjoint identity, element by element), ``grad`` of
+      a scalar loss equal to the Jacobians' contraction, the second order as jax's ``check_grads``
+      checks it (``jvp`` of ``jvp`` against central differences of ``jvp``; ``<v, d(J^T w)[t]>`` by
+      central differences against ``<t, vjp of vjp>``), and torch's pullback of a random cotangent
+      equal to jax's."""
+    fn = op.gradient_function(backend.module)
+    base = not op.variant_of
 
-    try:
-        check([np.concatenate(p) for p in zip(*parts, strict=True)])
-    except AssertionError:
-        for case, xs in zip(cases, parts, strict=True):
-            try:
-                check(xs)
-            except AssertionError as error:
-                raise AssertionError(f"case {case.name}: {error}") from None
-        raise
+    def inputs(case: Case) -> list[np.ndarray]:
+        return list(op.gradient_inputs(case.quaternions("float64")))
 
+    flat_cases = [c for c in CASES if not c.name.startswith("batch_") and op.applies(c)]
+    xs, parts = concatenate_cases(flat_cases, batch_shape, inputs)
+    n = len(xs[0])
+    moved, assemble = _perturbed(xs, (n,))
+    groups = [(c, inputs(c), batch_shape(c)) for c in CASES if c.name.startswith("batch_") and op.applies(c)]
+    group_moved = [_perturbed(gx, b) for _, gx, b in groups]
+    t1, t2 = _random_like(xs, 1), _random_like(xs, 2)
+    rng = np.random.default_rng(3)
+    out_shape = jax.eval_shape(fn, *map(jnp.asarray, xs)).shape
+    extra = {
+        "t1": t1,
+        "t2": t2,
+        "h": 1e-6,
+        "w": rng.normal(size=out_shape),
+        "v": [rng.normal(size=x.shape) for x in xs],
+        "weights": rng.normal(size=n),
+    }
+    lapack = "lapack" in jax.jit(jax.vmap(jax.jacrev(fn, tuple(range(len(xs)))))).lower(*xs).as_text()
+    program = _jax_program(op, base, [len(b) for _, _, b in groups], apart=lapack)
+    got = program(
+        {"xs": xs, "moved": moved},
+        [{"xs": gx, "moved": m} for (_, gx, _), (m, _) in zip(groups, group_moved, strict=True)],
+        extra,
+    )
+    got = jax.tree.map(np.asarray, got)
 
-@smooth
-@edge_cases
-@jax_only
-@gradients
-def test_torch_and_jax_gradients_agree(op: Op, backend: Backend, dtype: str, case: Case) -> None:
-    """The same cotangent pulled back through jax and through torch gives the same gradient to 1e-10.
+    # first order, reverse mode, against central differences at every case
+    n_out = int(np.prod(out_shape[1:]))
+    rev = [j.reshape(n, n_out, -1) for j in got["jacrev"]]
+    fd = assemble(got["moved"])
+    for case, rows, _ in parts:
+        _assert_jacobians_match(
+            op,
+            case,
+            [x[rows] for x in xs],
+            [j[rows] for j in rev],
+            [j[rows] for j in fd],
+            (len(xs[0][rows]),),
+        )
+    group_rev = []
+    for (case, gx, batch), (_, g_assemble), (g_rows, g_moved) in zip(
+        groups, group_moved, got["groups"], strict=True
+    ):
+        group_rev.append(_stack_rows([list(r) for r in g_rows], gx, batch))
+        _assert_jacobians_match(op, case, gx, group_rev[-1], g_assemble(g_moved), batch)
+    # torch's pullback of a random cotangent equals jax's, at the edge cases where the op is smooth (at a
+    # kink the gradient follows a rounding error's direction, which two correct implementations may
+    # take differently; it is finite everywhere, above)
+    fn_torch = op.gradient_function(BACKENDS["torch"].module)
+    rng = np.random.default_rng(4)
+    for case, gx, batch, jac in [
+        *((c, [x[rows] for x in xs], b, [j[rows] for j in rev]) for c, rows, b in parts),
+        *((c, gx, b, g) for (c, gx, b), g in zip(groups, group_rev, strict=True)),
+    ]:
+        if case.name not in EDGE_CASES or not op.smooth_at(case):
+            continue
+        cot = rng.normal(size=(*batch, jac[0].shape[-2]))
+        ts = [torch.tensor(x, requires_grad=True) for x in gx]
+        out = fn_torch(*ts)
+        g_torch = torch.autograd.grad(out, ts, torch.tensor(cot.reshape(out.shape)))
+        for a, j in zip(g_torch, jac, strict=True):
+            b = np.einsum("...oi,...o->...i", j, cot).reshape(a.shape)
+            np.testing.assert_allclose(
+                a.numpy(), b, rtol=1e-10, atol=1e-10 * max(1.0, float(np.abs(b).max(initial=0)))
+            )
+    if not base:
+        return
 
-    Where the op is differentiable (``smooth``). At a kink, such as a distance at 0 or at pi, the
-    gradient points along a vector that is pure rounding (the axis of a rotation by 1e-16), so two
-    correct implementations legitimately differ there; that it is finite is tested at every case
-    (test_gradient_matches_finite_differences, test_gradient_is_finite_in_every_dtype)."""
-    fn_torch = gradient_function(op, BACKENDS["torch"])
-
-    def pullbacks(fn_jax: Fn, xs: list[np.ndarray], batch: Batch) -> list[np.ndarray]:
-        arrays = [jnp.asarray(x) for x in xs]
-        cot = np.random.default_rng(0).normal(size=jax.eval_shape(fn_jax, *arrays).shape)
-        # the pullback under jit: one program, where an eager vjp of the jitted function compiled its
-        # linearisation and its transpose apart
-        g_jax = [np.asarray(g) for g in _jax_pullback(fn_jax)(arrays, jnp.asarray(cot))]
-        ts = [torch.tensor(x, requires_grad=True) for x in xs]
-        g_torch = [g.numpy() for g in torch.autograd.grad(fn_torch(*ts), ts, torch.tensor(cot))]
-        return [*g_torch, *g_jax]
-
-    n = len(op.gradient_inputs(case.quaternions("float64")))
-    grads = by_case("torch and jax", op, backend, case, pullbacks)[n:]
-    for a, b in zip(grads[:n], grads[n:], strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * max(1.0, float(np.abs(b).max(initial=0))))
+    # the base row: transforms and the second order at the edge cases where the op is smooth
+    edge = np.zeros(n, bool)
+    smooth = np.zeros(n, bool)
+    for case, rows, _ in parts:
+        edge[rows] = case.name in EDGE_CASES
+        smooth[rows] = case.name in EDGE_CASES and op.smooth_at(case)
+    eager = np.asarray(fn(*map(jnp.asarray, xs)))
+    close_values(op, got["value"][edge], eager[edge], smooth[edge])
+    close_values(op, got["vmap"][edge], eager[edge], smooth[edge])
+    fwd = [j.reshape(n, n_out, -1) for j in got["jacfwd"]]
+    for a, b in zip(fwd, rev, strict=True):
+        assert np.all(np.isfinite(a[edge])), _cases_of(~np.isfinite(a).reshape(n, -1).all(-1) & edge, parts)
+        assert_rows_close(a, b, 1e-10, smooth)
+    # grad of sum_n weights_n (sum_o f_no)^2: J^T (2 weights_n S_n) per row
+    s = eager.reshape(n, -1).sum(-1)
+    for g, j in zip(got["grad"], rev, strict=True):
+        want = np.einsum("noi,n->ni", j, 2 * extra["weights"] * s)
+        assert np.all(np.isfinite(g[edge]))
+        assert_rows_close(g, want, 1e-10, smooth)
+    h = extra["h"]
+    if "fwd" in op.second_order_modes:
+        central = (got["jvp_moved"][0] - got["jvp_moved"][1]) / (2 * h)
+        assert np.all(np.isfinite(_rowwise(got["jvp_jvp"], n)[smooth]))
+        assert_rows_close(got["jvp_jvp"], central, SECOND_ORDER_TOL, smooth)
+    if "rev" in op.second_order_modes:
+        central = [(g[0] - g[1]) / (2 * h) for g in got["vjp_moved"]]
+        lhs = _row_sums(list(zip(extra["v"], central, strict=True)), n)
+        rhs = _row_sums(list(zip(t2, got["vjp_vjp"], strict=True)), n)
+        scale = np.maximum(
+            1.0, _row_sums([(np.abs(v), np.abs(c)) for v, c in zip(extra["v"], central, strict=True)], n)
+        )
+        assert np.all(np.isfinite(rhs[smooth]))
+        bad = smooth & ~(np.abs(lhs - rhs) <= SECOND_ORDER_TOL * scale)
+        assert not bad.any(), f"second order (vjp of vjp) off in cases {_cases_of(bad, parts)}"
 
 
 def perturbed_rotations(n: int, seed: int) -> np.ndarray:

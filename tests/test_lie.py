@@ -192,10 +192,9 @@ def _float64(backend: Backend, *xs: np.ndarray) -> list[Any]:
 
 
 def table_batch(op_id: str, xs: tuple[np.ndarray, ...]) -> tuple[np.ndarray, ...]:
-    """``xs`` repeated (``np.resize``) to the batch size at which tests/test_grads.py's check_grads runs
-    the table's row ``op_id`` (its edge cases, at most 24 elements each): eager jax compiles each
-    operation once per shape, and that test has compiled these shapes (in this process, or into the
-    session's compilation cache, conftest.py). At a new shape they took 25 s per function."""
+    """``xs`` repeated (``np.resize``) to one batch size per table row ``op_id`` (its smooth edge cases,
+    at most 24 elements each): the tests of one function share it, and eager jax compiles each
+    operation once per shape (at a new shape per test they took 25 s per function)."""
     op = OPS_BY_NAME[op_id]
     sizes = [int(np.prod(c.quaternions("float64").shape[:-1])) for c in CASES if c.name in EDGE_CASES]
     smooth = [op.applies(c) and op.smooth_at(c) for c in CASES if c.name in EDGE_CASES]
@@ -274,7 +273,7 @@ def test_plus_and_minus_invert_each_other(backend: Backend, precision: str, side
     half_turn = np.concatenate([[0.0], _vectors(np.array([1.0]), seed=7)[0]])
     q1 = np.concatenate([q1, hamilton(q[-1:], half_turn[None])])  # a half-turn from q[-1] (right side)
     q2 = np.concatenate([q, q[-1:]])
-    # at the size of the table's jax derivative checks (shapes jax has compiled: see table_batch)
+    # at one batch size for the tests of so3_plus (shapes eager jax has compiled: see table_batch)
     delta, q = table_batch("so3_plus[left]", (delta, q))
     q1, q2 = table_batch("so3_plus[left]", (q1, q2))
     matrix = oracle_quaternion_to_matrix(q)
@@ -416,7 +415,7 @@ def test_right_side_first_and_second_derivatives(name: str) -> None:
     assert torch.autograd.gradcheck(torch_fn, ts, eps=1e-6, atol=1e-6, rtol=1e-5, fast_mode=True)
     assert torch.autograd.gradgradcheck(torch_fn, ts, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=True)
     jax_fn = functools.partial(getattr(BACKENDS["jax"].module, name), side="right")
-    # under jax.jit, as in test_grads.test_jax_check_grads: each derivative program compiles once
+    # under jax.jit, as users run it: each derivative program compiles once, not each eager operation
     check_grads(jax.jit(jax_fn), tuple(jnp.asarray(x) for x in xs), order=2, modes=("fwd", "rev"), eps=1e-6)
 
 
