@@ -30,7 +30,7 @@ from cases import (
 )
 from conftest import BACKENDS, Backend, rows_by_case
 from jax.test_util import check_grads
-from test_forward_mode import assert_rows_close
+from test_forward_mode import assert_rows_close, directions
 from test_transforms import close_values
 
 Fn = Callable[..., Any]
@@ -211,18 +211,6 @@ def _row_sums(pairs: list[tuple[Any, Any]], n: int) -> np.ndarray:
     return sum((_rowwise(a, n) * _rowwise(b, n)).sum(-1) for a, b in pairs)  # type: ignore[return-value]
 
 
-def _random_like(xs: list[np.ndarray], seed: int) -> list[np.ndarray]:
-    """Random directions, each row scaled to its input's norm (the ops see 1e-20 ... 1e20 inputs and
-    some are scale-invariant), 1 where the input is zero."""
-    rng = np.random.default_rng(seed)
-    out = []
-    for x in xs:
-        norm = np.linalg.norm(x.reshape(len(x), -1), axis=-1)
-        scale = np.where(norm > 0, norm, 1.0).reshape(-1, *([1] * (x.ndim - 1)))
-        out.append(rng.normal(size=x.shape) * scale)
-    return out
-
-
 def _jax_program(op: Op, second_order: bool, ranks: list[int], apart: bool) -> Fn:
     """One jitted program with everything the jax derivative checks of ``op`` compare: per group of
     inputs (every case but the batch_* ones concatenated on one batch axis, then each batch_* case at
@@ -339,7 +327,7 @@ def test_jax_derivatives(op: Op, backend: Backend, dtype: str) -> None:
     moved, assemble = _perturbed(xs, (n,))
     groups = [(c, inputs(c), batch_shape(c)) for c in CASES if c.name.startswith("batch_") and op.applies(c)]
     group_moved = [_perturbed(gx, b) for _, gx, b in groups]
-    t1, t2 = _random_like(xs, 1), _random_like(xs, 2)
+    t1, t2 = directions(xs, seed=1), directions(xs, seed=2)
     rng = np.random.default_rng(3)
     out_shape = jax.eval_shape(fn, *map(jnp.asarray, xs)).shape
     extra = {
