@@ -1,6 +1,6 @@
 """Graph capture on torch: a model traced or exported with one input computes, on another input, what
 eager computes (eager takes the conversions' autograd.Functions, every capture the core formula:
-diffquat/torch/_custom.py, ``capturing``).
+diffquat/torch/_custom.py, ``form``).
 
 Every row of the table (every public function, each keyword variant) and every ``RotationHead`` is
 captured by ``torch.jit.trace`` (and that trace scripted into a module, saved and loaded, the way

@@ -1,9 +1,10 @@
 """The evaluations of a torch call, and the one place that decides between them
-(``diffquat/torch/_custom.py``, ``capturing``): in eager mode, and under ``torch.func`` transforms,
+(``diffquat/torch/_custom.py``, ``form``): in eager mode, and under ``torch.func`` transforms,
 the conversions are ``autograd.Function``s whose rules are the core's written-out tangent and
-cotangent; under every graph capture (``torch.compile``, ``torch.export``, ``torch.jit.trace``, the
-ONNX exporters) the plain core formula, which the compiler differentiates and fuses. Both compute the
-value by the same formula: a differentiated call returns the plain call's value bit for bit, on
+cotangent, or, where no derivative can be asked of the call, their forward alone; under every
+graph capture (``torch.compile``, ``torch.export``, ``torch.jit.trace``, the ONNX exporters) the
+plain core formula, which the compiler differentiates and fuses. Both compute the value by the same
+formula: a differentiated call returns the plain call's value bit for bit, on
 every backend (tests/test_grads.py checks that for every row), and the derivatives do not depend on
 the path (here, at tied pivots and tiny norms)."""
 
@@ -20,6 +21,7 @@ from cases import CASES_BY_NAME, oracle_quaternion_to_matrix
 
 import diffquat.torch as dq
 from diffquat import _algebra, _backend, _core, _euler, _lie
+from diffquat.torch._custom import form
 
 Q2M, M2Q = "_quaternion_to_matrix_eager", "_matrix_to_quaternion_eager"  # the Functions
 
@@ -38,6 +40,43 @@ def test_eager_calls_take_the_function_and_captures_the_formula() -> None:
     torch.testing.assert_close(traced(other), dq.matrix_to_quaternion(other), rtol=0, atol=0)
     ops = _traced_ops(dq.matrix_to_quaternion, m.detach())
     assert not any("Function" in op or "autograd" in op for op in ops), ops
+
+
+@pytest.mark.filterwarnings("ignore:`torch.jit.script` is deprecated:DeprecationWarning")  # make_dual
+def test_the_form_of_a_call_in_each_context() -> None:
+    """The one decision (``_custom.form``), in every context a user calls from: the rule wherever a
+    derivative can be asked (autograd, dual tensors, each ``torch.func`` derivative transform, also
+    nested), the formula alone where none can (inference, ``no_grad``, ``vmap`` alone), the captured
+    form under ``torch.compile`` and ``torch.jit.trace``."""
+    seen: list[str] = []
+
+    def record(x: torch.Tensor) -> torch.Tensor:
+        seen.append(form(x))
+        return x * 2
+
+    def forms(call: Callable[[], Any]) -> list[str]:
+        seen.clear()
+        call()
+        return list(seen)
+
+    x = torch.randn(3, dtype=torch.float64)
+    leaf = x.clone().requires_grad_(True)
+    assert forms(lambda: record(x)) == ["formula"]
+    assert forms(lambda: record(leaf)) == ["rule"]
+    with torch.no_grad():
+        assert forms(lambda: record(leaf)) == ["formula"]
+    with torch.autograd.forward_ad.dual_level():
+        assert forms(lambda: record(torch.autograd.forward_ad.make_dual(x, x))) == ["rule"]
+        assert forms(lambda: record(x)) == ["rule"]  # a dual level is open: x may meet a dual
+    assert forms(lambda: torch.func.vmap(record)(x[None])) == ["formula"]
+    for transform in (torch.func.grad, torch.func.jacrev, torch.func.jacfwd, torch.func.hessian):
+        assert set(forms(lambda t=transform: t(lambda y: record(y).sum())(x))) == {"rule"}, transform
+    assert forms(lambda: torch.func.jvp(record, (x,), (x,))) == ["rule"]
+    assert forms(lambda: torch.func.vmap(torch.func.grad(lambda y: record(y).sum()))(x[None])) == ["rule"]
+    with pytest.warns(DeprecationWarning):  # torch.jit.trace is deprecated in torch 2.13
+        assert forms(lambda: torch.jit.trace(record, x, check_trace=False)) == ["captured"]
+    torch._dynamo.reset()
+    assert forms(lambda: torch.compile(record, fullgraph=True, backend="eager")(x)) == ["captured"]
 
 
 # ---------------------------------------------------------------------------------------------------

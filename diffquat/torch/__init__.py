@@ -136,7 +136,7 @@ _B = Backend(
 
 
 # The conversions with their derivatives written out (diffquat._core.derivative_rules): an
-# autograd.Function in eager mode, the formula under capture (see _custom.capturing). The public
+# autograd.Function in eager mode, the formula under capture (see _custom.form). The public
 # functions and every composite's conversion step call these.
 _CONVERSIONS = _core.registered_conversions(
     lambda name, rule: custom_derivative(*rule, formula_when_captured=True)

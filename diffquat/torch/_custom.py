@@ -1,13 +1,14 @@
 """Custom derivatives for torch: a map whose library derivative is unstable (SVD, eigh) or slow (the
 conversions) with its own rules, in both modes. The formulas live in the core, over ``xp``; this only
-registers them, and :func:`capturing` is the one place that decides which form a call takes.
+registers them, and :func:`form` is the one place that decides which form a call takes.
 
 Two forms of one map, because eager torch and graph capture each honour a different part of an
 ``autograd.Function``:
 
 - Eager: a Function with ``forward``, ``backward``, ``jvp`` and ``generate_vmap_rule``. Autograd,
   ``torch.func`` (``grad``, ``jacrev``, ``jvp``, ``jacfwd``, ``hessian``, ``vmap``) and dual tensors
-  (``torch.autograd.forward_ad``) call the rules, exact to every order.
+  (``torch.autograd.forward_ad``) call the rules, exact to every order. An eager call of which no
+  derivative can be asked (inference) takes the Function's forward alone.
 - Captured (``torch.compile``, ``torch.jit.trace``): no Function at all. Dynamo refuses one that
   defines ``jvp`` ("Unsupported custom jvp", an error under ``fullgraph=True``), fails to vmap one
   under ``hessian``, and without ``jvp`` differentiates its forward's operations under ``torch.func``
@@ -28,21 +29,40 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Literal
 
 import torch
 from torch import Tensor
+from torch.autograd import forward_ad
 from torch.autograd.forward_ad import _set_fwd_grad_enabled
 from torch.jit._trace import is_tracing
 
 Formula = Callable[[Any, Tensor, Tensor, Tensor], Tensor]
 
 
-def capturing() -> bool:
-    """Whether a graph capture records this call: ``torch.compile``, ``torch.export`` and the dynamo
-    ONNX exporter (Dynamo), ``torch.jit.trace`` and the TorchScript ONNX exporter. Eager calls, and
-    ``torch.func`` transforms of them, take the ``autograd.Function``; captures take the plain form."""
-    return torch.compiler.is_compiling() or bool(is_tracing())  # type: ignore[no-untyped-call]
+Form = Literal["captured", "rule", "formula"]
+
+
+def form(x: Tensor) -> Form:
+    """Which form a call of a map on ``x`` takes, decided here and nowhere else:
+
+    - ``"captured"``: a graph capture records it (``torch.compile``, ``torch.export`` and the dynamo
+      ONNX exporter through Dynamo; ``torch.jit.trace`` and the TorchScript ONNX exporter): the plain
+      form (the formula, its linearisation or the map's own captured form).
+    - ``"rule"``: eager, and a derivative of it can be asked for: autograd records it (``x`` requires
+      grad in grad mode; ``torch.func.grad`` and ``jacrev`` wrap ``x`` so), or a forward-mode level
+      is open (dual tensors; ``torch.func.jvp``, ``jacfwd`` and ``hessian`` open one): the
+      ``autograd.Function`` with the core's rules.
+    - ``"formula"``: eager, and no derivative can be asked (inference, ``torch.no_grad``, ``vmap``
+      alone): the Function's forward alone, the same formula and so the same value bit for bit,
+      without its bookkeeping (binding its signature, the copy of ``x`` its ``jvp`` reads: a pass over
+      the input at large N)."""
+    if torch.compiler.is_compiling() or is_tracing():  # type: ignore[no-untyped-call]
+        return "captured"
+    # forward_ad's level counter is the one record of an open dual level (there is no public accessor).
+    if (x.requires_grad and torch.is_grad_enabled()) or forward_ad._current_level >= 0:
+        return "rule"
+    return "formula"
 
 
 def _linearised(forward: Callable[[Any, Tensor], Tensor], tangent: Formula, x: Tensor) -> Tensor:
@@ -178,14 +198,15 @@ def custom_derivative(
     Eager = type(f"_{forward.__name__}_eager", (Eager,), {"__doc__": Eager.__doc__})  # type: ignore[assignment,misc]
 
     def bound(xp: Any, x: Tensor) -> Tensor:
-        if capturing():
-            if formula_when_captured:
-                return forward(torch, x)
-            if captured is not None:
-                x0 = x.detach()
-                return captured(torch, x0, x - x0)
-            return _linearised(forward, tangent, x)
-        return Eager.apply(x)[0]  # type: ignore[no-untyped-call]
+        chosen = form(x)
+        if chosen == "rule":
+            return Eager.apply(x)[0]  # type: ignore[no-untyped-call]
+        if chosen == "formula" or formula_when_captured:
+            return forward(torch, x)
+        if captured is not None:
+            x0 = x.detach()
+            return captured(torch, x0, x - x0)
+        return _linearised(forward, tangent, x)
 
     bound.__name__ = forward.__name__  # the Backend validates arguments by this name
     return bound
