@@ -201,7 +201,9 @@ def custom_derivative(
         chosen = form(x)
         if chosen == "rule":
             return Eager.apply(x)[0]  # type: ignore[no-untyped-call]
-        if chosen == "formula" or formula_when_captured:
+        if chosen == "formula":
+            return forward(torch, x).contiguous()  # laid out as the Function returns it
+        if formula_when_captured:
             return forward(torch, x)
         if captured is not None:
             x0 = x.detach()
