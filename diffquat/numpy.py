@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from . import _algebra, _core, _euler, _lie
+from . import _algebra, _core, _euler, _igso3, _lie
 from . import _fisher as _fi
 from . import _representations as _rep
 from . import _statistics as _stats
@@ -23,6 +23,7 @@ __all__ = [
     "euler_angles_to_matrix",
     "euler_angles_to_quaternion",
     "fit_rotation",
+    "igso3_log_density",
     "matrix_fisher_log_normalizer",
     "matrix_fisher_mode",
     "matrix_fisher_nll",
@@ -355,6 +356,11 @@ def random_quaternions(
 
 
 # The matrix Fisher distribution on SO(3) and the Bingham NLL of the 10D head (diffquat._fisher).
+
+
+@documented(_igso3.igso3_log_density)
+def igso3_log_density(angle: ArrayLike, sigma: ArrayLike) -> NDArray[Any]:
+    return np.asarray(_B(_igso3.igso3_log_density, angle, sigma))
 
 
 @documented(_fi.matrix_fisher_log_normalizer)

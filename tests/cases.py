@@ -1359,6 +1359,97 @@ OPS += [
     ),
 ]
 
+
+# ---------------------------------------------------------------------------------------------------
+# IGSO(3). The reference is mpmath at 50 digits: the defining series in l where it converges within
+# a few hundred terms (eps = sigma^2 / 2 >= 0.05), its Poisson dual summed over |k| <= 30 below (the
+# series would need ~1e5 terms at sigma = 1e-4, in ~300-digit arithmetic in the tail);
+# tests/test_igso3.py checks that the two agree where both are summed. Each case quaternion gives the
+# angle of its rotation (0 to pi: half-turns, near them, near the identity, the zero quaternion's 0)
+# and a sigma from 0.3 to 10, log-uniform in the first vector component x of its unit quaternion
+# (0.3 (10 / 0.3)^((x + 1) / 2)): both forms of the density and both of the dual's terms are reached.
+# Not below 0.3: the table's derivative checks take central differences with a step of 1e-6 relative,
+# whose error grows as the curvature of log f about pi, (pi / sigma^2)^2, does; tests/test_igso3.py
+# checks values and derivatives from sigma = 1e-4 against the reference's own derivatives.
+
+
+def igso3_log_density_series(omega: Any, eps: Any) -> Any:
+    """log f by its defining series in l, in mpmath (the working precision's), to a relative 1e-60."""
+    total, ell = mpmath.mpf(0), 0
+    while True:
+        weight = (2 * ell + 1) * mpmath.exp(-ell * (ell + 1) * eps)
+        kernel = mpmath.sin((ell + mpmath.mpf(0.5)) * omega) / mpmath.sin(omega / 2) if omega else 2 * ell + 1
+        total += weight * kernel
+        if ell > 2 and weight * (2 * ell + 1) < mpmath.mpf(10) ** -60:
+            return mpmath.log(total)
+        ell += 1
+
+
+def igso3_log_density_dual(omega: Any, eps: Any) -> Any:
+    """log f by the Poisson dual summed over |k| <= 30, in mpmath, for 0 < omega <= pi (the sum is
+    taken relative to its k = 0 term, whose exponent is added as a log)."""
+    total = mpmath.fsum(
+        (-1) ** k
+        * (omega + 2 * mpmath.pi * k)
+        * mpmath.exp(-((omega + 2 * mpmath.pi * k) ** 2 - omega**2) / (4 * eps))
+        for k in range(-30, 31)
+    )
+    log_f = mpmath.log(mpmath.sqrt(mpmath.pi) * total / (2 * mpmath.sin(omega / 2)))
+    return log_f - 1.5 * mpmath.log(eps) + eps / 4 - omega**2 / (4 * eps)
+
+
+def igso3_reference(omega: Any, sigma: Any) -> Any:
+    """log f(omega; sigma) as an mpmath number at the working precision (see above), omega reduced to
+    [0, pi]; differentiable by ``mpmath.diff`` in both arguments."""
+    w = abs(omega - 2 * mpmath.pi * mpmath.nint(omega / (2 * mpmath.pi)))
+    eps = sigma**2 / 2
+    if eps >= mpmath.mpf("0.05"):
+        return igso3_log_density_series(w, eps)
+    # the dual's 0/0 at omega = 0: f is even in omega, so within 1e-60 of f(1e-30)
+    return igso3_log_density_dual(max(w, mpmath.mpf(10) ** -30), eps)
+
+
+@functools.cache
+def reference_igso3_log_density(angle: float, sigma: float) -> float:
+    """log f(omega; sigma) by mpmath at 50 digits (see above)."""
+    with mpmath.workdps(50):
+        return float(igso3_reference(mpmath.mpf(angle), mpmath.mpf(sigma)))
+
+
+def oracle_igso3_log_density(angle: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    a, s = np.broadcast_arrays(angle, sigma)
+    return np.array(
+        [reference_igso3_log_density(float(x), float(y)) for x, y in zip(a.flat, s.flat, strict=True)]
+    ).reshape(a.shape)
+
+
+def igso3_scale(angle: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """The size of log f's terms, which its error is measured against: 1 + |1.5 log eps| + omega^2 / (4
+    eps) (where log f crosses 0, the terms cancel and a relative error would be meaningless)."""
+    eps = np.maximum(0.5 * np.asarray(sigma, np.float64) ** 2, 1e-300)
+    return 1.0 + np.abs(1.5 * np.log(eps)) + np.asarray(angle, np.float64) ** 2 / (4.0 * eps)
+
+
+def _igso3_inputs(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    u = oracle_normalize(q)
+    angle = 2.0 * np.arctan2(np.linalg.norm(u[..., 1:], axis=-1), np.abs(u[..., 0]))
+    return angle, 0.3 * (10.0 / 0.3) ** (0.5 * (u[..., 1] + 1.0))
+
+
+OPS += [
+    Op(
+        "igso3_log_density",
+        _igso3_inputs,
+        oracle_igso3_log_density,
+        quaternion_args=(),
+        output="other",
+        scalar_first=False,
+        smooth_at=lambda case: True,
+        error_scale=igso3_scale,
+    ),
+]
+
+
 OPS_BY_NAME = {op.id: op for op in OPS}
 
 

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
-from .. import _algebra, _core, _euler, _lie
+from .. import _algebra, _core, _euler, _igso3, _lie
 from .. import _fisher as _fi
 from .. import _representations as _rep
 from .. import _statistics as _stats
@@ -31,6 +31,7 @@ __all__ = [
     "euler_angles_to_matrix",
     "euler_angles_to_quaternion",
     "fit_rotation",
+    "igso3_log_density",
     "matrix_fisher_log_normalizer",
     "matrix_fisher_mode",
     "matrix_fisher_nll",
@@ -390,6 +391,11 @@ _matrix_fisher_log_normalizer = _compiled(_fi.matrix_fisher_log_normalizer, "nor
 _matrix_fisher_nll = _compiled(_fi.matrix_fisher_nll, "normalizer")
 _matrix_fisher_mode = _compiled(_fi.matrix_fisher_mode, "procrustes")
 _bingham_nll = _compiled(_fi.bingham_nll, "scalar_first", "normalizer")
+
+
+@documented(_igso3.igso3_log_density)
+def igso3_log_density(angle: ArrayLike, sigma: ArrayLike) -> Array:
+    return _B(_igso3.igso3_log_density, angle, sigma)
 
 
 @documented(_fi.matrix_fisher_log_normalizer)

@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 from torch.jit._trace import TracerWarning, is_tracing
 
-from .. import _algebra, _core, _euler, _lie
+from .. import _algebra, _core, _euler, _igso3, _lie
 from .. import _fisher as _fi
 from .. import _representations as _rep
 from .. import _statistics as _stats
@@ -28,6 +28,7 @@ __all__ = [
     "euler_angles_to_matrix",
     "euler_angles_to_quaternion",
     "fit_rotation",
+    "igso3_log_density",
     "matrix_fisher_log_normalizer",
     "matrix_fisher_mode",
     "matrix_fisher_nll",
@@ -416,6 +417,11 @@ _reduced_log_normalizer = custom_derivative(
     functools.partial(_fi.reduced_log_normalizer_cotangent, moment=_reduced_second_moment),
     captured=_fi.reduced_log_normalizer_taylor,
 )
+
+
+@documented(_igso3.igso3_log_density)
+def igso3_log_density(angle: Tensor | float, sigma: Tensor | float) -> Tensor:
+    return _B(_igso3.igso3_log_density, angle, sigma)
 
 
 @documented(_fi.matrix_fisher_log_normalizer)

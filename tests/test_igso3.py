@@ -1,0 +1,182 @@
+"""IGSO(3) beyond the shared table (tests/cases.py has its row, sigma from 0.3 to 10): values and
+derivatives from sigma = 1e-4 on, against the 50-digit reference and its own derivatives
+(``mpmath.diff``), far into the tail; the two forms of the reference against each other; the total
+mass; the documented edge cases (negative, zero and tiny sigma, large sigma, angles beyond pi).
+
+Errors are measured against the size of log f's terms (``cases.igso3_scale``): where log f crosses 0
+its terms cancel, and a relative error there would measure the cancellation, not the computation.
+The bounds are in units of the dtype's epsilon times that size: log f is a sum of five terms, each
+computed to an ulp or two of its own size, so a correct evaluation stays within a few.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import mpmath
+import numpy as np
+import pytest
+import torch
+from cases import (
+    igso3_log_density_dual,
+    igso3_log_density_series,
+    igso3_reference,
+    igso3_scale,
+    reference_igso3_log_density,
+)
+from conftest import Backend
+from scipy import integrate
+
+import diffquat.numpy as dnp
+
+# From the concentrations of protein-diffusion schedules (1e-4 ... 5e-4) to nearly uniform, both sides
+# of the switch between the two forms (sigma = 2), and angles from the identity (the dual's 0/0) to
+# pi and past it (reduced to [-pi, pi]).
+SIGMAS = [1e-4, 5e-4, 2e-3, 0.02, 0.1, 0.3, 1.0, 1.99, 2.0, 2.01, 3.0, 10.0, 30.0]
+ANGLES = [0.0, 1e-9, 1e-5, 1e-3, 0.1, 1.0, 2.0, 3.0, math.pi - 1e-6, math.pi, 4.0, -1.0, 7.0]
+ULPS = {"float64": 4, "float32": 4}
+
+
+def grid() -> tuple[np.ndarray, np.ndarray]:
+    angle, sigma = np.meshgrid(ANGLES, SIGMAS)
+    return angle.ravel(), sigma.ravel()
+
+
+@pytest.mark.parametrize("precision", list(ULPS))
+def test_log_density_matches_the_reference_far_into_the_tail(backend: Backend, precision: str) -> None:
+    """Within 4 ulps of the size of the terms, against the reference at the values the backend
+    received (float32 inputs are rounded first; the reference is taken at the rounded values), for
+    sigma from 1e-4 to 30 (at omega = pi and sigma = 1e-4, log f = -4.9e8: f itself underflows)."""
+    angle, sigma = grid()
+    a, s = backend.array(angle, precision), backend.array(sigma, precision)
+    got = backend.to_numpy(backend.module.igso3_log_density(a, s))
+    ra, rs = backend.to_numpy(a), backend.to_numpy(s)
+    expected = np.array([reference_igso3_log_density(x, y) for x, y in zip(ra, rs, strict=True)])
+    error = np.abs(got - expected) / igso3_scale(ra, rs) / np.finfo(precision).eps
+    worst = int(np.argmax(error))
+    assert error[worst] <= ULPS[precision], (
+        f"{error[worst]:.2f} ulps at angle {ra[worst]}, sigma {rs[worst]}: {got[worst]} vs {expected[worst]}"
+    )
+
+
+def _derivatives(backend: Backend, angle: np.ndarray, sigma: np.ndarray, precision: str) -> tuple[Any, Any]:
+    """d log f / d angle and d log f / d sigma, elementwise, by the backend's reverse mode."""
+    fn = backend.module.igso3_log_density
+    a, s = backend.array(angle, precision), backend.array(sigma, precision)
+    if backend.name == "torch":
+        a, s = a.requires_grad_(True), s.requires_grad_(True)
+        out = fn(a, s)
+        grads = torch.autograd.grad(out, (a, s), torch.ones_like(out))
+    else:
+        grads = jax.grad(lambda a, s: fn(a, s).sum(), argnums=(0, 1))(a, s)
+    return backend.to_numpy(grads[0]), backend.to_numpy(grads[1])
+
+
+@pytest.fixture(scope="module")
+def reference_derivatives() -> tuple[np.ndarray, np.ndarray]:
+    """The reference's derivatives on the grid, by mpmath.diff at 50 digits (on the float32 grid,
+    which is also a float64 grid)."""
+    angle, sigma = grid()
+    angle, sigma = angle.astype(np.float32).astype(np.float64), sigma.astype(np.float32).astype(np.float64)
+    d_angle, d_sigma = [], []
+    with mpmath.workdps(50):
+        for x, y in zip(angle, sigma, strict=True):
+            xm, ym = mpmath.mpf(x), mpmath.mpf(y)
+            d_angle.append(float(mpmath.diff(lambda t, y=ym: igso3_reference(t, y), xm)))
+            d_sigma.append(float(mpmath.diff(lambda t, x=xm: igso3_reference(x, t), ym)))
+    return np.array(d_angle), np.array(d_sigma)
+
+
+def derivative_scales(angle: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The sizes of the terms of each derivative: ``d/d omega`` of ``-omega^2 / (4 eps)`` is
+    ``|omega| / (2 eps)``, ``d/d sigma`` of it and of ``-1.5 log eps`` are ``omega^2 / sigma^3`` and
+    ``3 / sigma``."""
+    eps = 0.5 * sigma**2
+    return 1.0 + np.abs(angle) / (2.0 * eps), 1.0 + 3.0 / sigma + angle**2 / sigma**3
+
+
+DERIVATIVE_ULPS = {"float64": 64, "float32": 16}
+
+
+@pytest.mark.parametrize("precision", list(DERIVATIVE_ULPS))
+def test_derivatives_match_the_reference(
+    backend: Backend, precision: str, reference_derivatives: tuple[np.ndarray, np.ndarray]
+) -> None:
+    """d log f / d omega (the score's size) and d log f / d sigma within 64 ulps (float64; 16 in
+    float32) of the size of their terms, from sigma = 1e-4, at the identity (where the derivative in
+    omega is 0 and the dual's terms divide 0 by 0) and at pi (0 again, by symmetry). A chain of ~100
+    operations, each an ulp, bounds the float64 error well below 64; float32 has fewer bits to lose
+    relative to the same chain."""
+    if not backend.differentiable:
+        pytest.skip("numpy has no derivatives")
+    angle, sigma = grid()
+    angle, sigma = angle.astype(np.float32).astype(np.float64), sigma.astype(np.float32).astype(np.float64)
+    got_angle, got_sigma = _derivatives(backend, angle, sigma, precision)
+    scale_angle, scale_sigma = derivative_scales(angle, sigma)
+    eps = np.finfo(precision).eps
+    for name, got, expected, scale in [
+        ("angle", got_angle, reference_derivatives[0], scale_angle),
+        ("sigma", got_sigma, reference_derivatives[1], scale_sigma),
+    ]:
+        error = np.abs(got - expected) / scale / eps
+        worst = int(np.argmax(error))
+        assert error[worst] <= DERIVATIVE_ULPS[precision], (
+            f"d/d{name}: {error[worst]:.1f} ulps at angle {angle[worst]}, sigma {sigma[worst]}: "
+            f"{got[worst]} vs {expected[worst]}"
+        )
+
+
+@pytest.mark.parametrize(("omega", "eps"), [(0.3, 0.05), (2.0, 0.5), (3.1, 2.0), (1e-3, 1.0), (math.pi, 0.2)])
+def test_the_two_forms_of_the_reference_agree(omega: float, eps: float) -> None:
+    """The defining series and its Poisson dual (the reference's form below eps = 0.05, and the
+    library's below eps = 2) agree to 40 digits where both converge: the dual, its (-1)^k included,
+    is the series."""
+    with mpmath.workdps(60):
+        w, e = mpmath.mpf(omega), mpmath.mpf(eps)
+        assert abs(igso3_log_density_series(w, e) - igso3_log_density_dual(w, e)) < mpmath.mpf(10) ** -40
+
+
+@pytest.mark.parametrize("sigma", [1e-3, 0.05, 0.5, 2.0, 5.0])
+def test_density_integrates_to_one(sigma: float) -> None:
+    """The angle's density f(omega) (1 - cos omega) / pi has total mass 1 on [0, pi] (f is the density
+    with respect to the normalised Haar measure), to 1e-11, by adaptive quadrature: on [0, 40 sigma]
+    with break points at multiples of sigma, where the mass is when sigma is small, and beyond."""
+
+    def density(w: float) -> float:
+        return math.exp(float(dnp.igso3_log_density(w, sigma))) * (1.0 - math.cos(w)) / math.pi
+
+    edge = min(40.0 * sigma, math.pi)
+    points = [k * sigma for k in (0.5, 1.0, 2.0, 4.0, 8.0, 16.0) if k * sigma < edge]
+    mass = integrate.quad(density, 0.0, edge, points=points or None, epsabs=1e-15, epsrel=1e-12, limit=200)[0]
+    if edge < math.pi:
+        mass += integrate.quad(density, edge, math.pi, epsabs=1e-15, limit=200)[0]
+    assert abs(mass - 1.0) < 1e-11
+
+
+def _values(backend: Backend, angle: Any, sigma: Any, precision: str = "float64") -> np.ndarray:
+    fn: Callable[..., Any] = backend.module.igso3_log_density
+    return backend.to_numpy(fn(backend.array(angle, precision), backend.array(sigma, precision)))
+
+
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_documented_edge_cases(backend: Backend, precision: str) -> None:
+    """sigma enters as sigma^2 (-sigma is sigma); below the smallest sigma the dtype can carry the
+    derivatives of (``sqrt(2 sqrt(1e3 / max))``), sigma = 0 included, the density is that sigma's,
+    finite; at sigma = 30 it is uniform (log f = 0 to rounding); an angle is reduced to [-pi, pi]
+    (2 pi + w is w, -w is w)."""
+    angle = np.array([0.5, 2.0, 0.0, math.pi])
+    same = _values(backend, angle, np.full(4, 0.7), precision)
+    np.testing.assert_array_equal(_values(backend, angle, np.full(4, -0.7), precision), same)
+    smallest = math.sqrt(2.0 * math.sqrt(1e3 / float(np.finfo(precision).max)))
+    floor = _values(backend, angle, np.full(4, smallest), precision)
+    assert np.all(np.isfinite(floor))
+    np.testing.assert_array_equal(_values(backend, angle, np.zeros(4), precision), floor)
+    np.testing.assert_array_equal(_values(backend, angle, np.full(4, smallest / 10), precision), floor)
+    assert np.all(np.abs(_values(backend, angle, np.full(4, 30.0), precision)) <= np.finfo(precision).eps)
+    shifted = _values(backend, np.array([0.5 + 2 * math.pi, -2.0, -0.5, 2.0 - 4 * math.pi]), np.full(4, 0.7))
+    np.testing.assert_allclose(
+        shifted, _values(backend, np.array([0.5, 2.0, 0.5, 2.0]), np.full(4, 0.7)), rtol=1e-13
+    )
