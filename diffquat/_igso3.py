@@ -8,16 +8,16 @@ whose angle to the mean is ``omega`` is the heat kernel on SO(3) at time ``sigma
 with ``eps = sigma^2 / 2``, so that for small ``sigma`` the rotation vector is close to N(0, sigma^2 I_3).
 Two exact forms of the same function are evaluated, each where it needs few terms:
 
-- ``eps > 2``: the series itself, ``f = 1 + sum_{l=1}^{5} ...``: its terms fall as ``exp(-l (l + 1) eps)``,
-  so at ``l = 6`` the next one is below ``(13)^2 exp(-84) ~ 5e-35`` relative;
-- ``eps <= 2``: its Poisson dual (Poisson summation over the half-integers ``l + 1/2``),
+- ``eps > 1/2``: the series itself, ``f = 1 + sum_{l=1}^{9} ...``: its terms fall as ``exp(-l (l + 1)
+  eps)``, so at ``l = 10`` the next one is below ``21^2 exp(-55) ~ 5e-22`` relative;
+- ``eps <= 1/2``: its Poisson dual (Poisson summation over the half-integers ``l + 1/2``),
 
       f = sqrt(pi) eps^(-3/2) e^(eps / 4) / (2 sin(omega / 2))
           * sum_k (-1)^k (omega + 2 pi k) e^(-(omega + 2 pi k)^2 / (4 eps)),
 
   taken in log space: the ``k = 0`` term's ``-omega^2 / (4 eps)`` and the prefactor are added as logs,
   and the other terms enter as ``log1p`` of their sum relative to it, whose terms ``k = +-m`` fall as
-  ``(4 pi^2 m^2 / eps) exp(-pi^2 m^2 / eps)``: below 1e-17 from ``m = 4`` on at ``eps = 2`` (3 pairs).
+  ``(4 pi^2 m^2 / eps) exp(-pi^2 m^2 / eps)``: ``m = 2`` is below 1e-32 at ``eps = 1/2`` (1 pair).
 
 So the log density is finite and accurate far into the tail (``f`` itself underflows there: ``log f``
 is about ``-5e8`` at ``omega = pi, sigma = 1e-4``), with no truncated series and no ``+1e-6`` guard.
@@ -31,10 +31,10 @@ from typing import Any
 from ._algebra import match_rank
 from ._core import op
 
-# eps = sigma^2 / 2 where the two forms trade (module docstring): both are exact to rounding there.
-_SWITCH = 2.0
-_PAIRS = 3  # dual terms k = +-1 ... +-3
-_TERMS = 5  # series terms l = 1 ... 5
+# eps = sigma^2 / 2 where the two forms trade (module docstring): both are exact to rounding there,
+# and the graph is small (each pair or term is ~15 operations; compilers inline them all).
+_SWITCH = 0.5
+_TERMS = 9  # series terms l = 1 ... 9
 
 
 # pi in three parts: a head of 8 bits, a middle of 24 (both exact in float32 and float64) and a tail,
@@ -49,7 +49,8 @@ _PI_TAIL = 5.126688303189038e-12
 
 
 def _fold(xp: Any, angle: Any) -> tuple[Any, Any]:
-    """The angle reduced to [-pi, pi], and ``pi`` less its size, both to the last bit of the angle.
+    """The angle reduced to [-pi, pi], and ``pi`` less its size (signed: an angle within a rounding
+    of pi may reduce to just past it), both to the last bit of the angle.
 
     f is even and 2 pi-periodic in omega, so any real angle has the density of its reduction. The
     reduction is signed, not its absolute value: the forms below are even in it, and an ``abs`` would
@@ -58,19 +59,17 @@ def _fold(xp: Any, angle: Any) -> tuple[Any, Any]:
     of 8.7e-8, and the derivative of log f near pi changes by ``(pi / (2 eps))^2`` times the gap)."""
     turns = xp.round(angle * (0.5 / math.pi))
     omega = ((angle - (2.0 * _PI_HEAD) * turns) - (2.0 * _PI_MID) * turns) - (2.0 * _PI_TAIL) * turns
-    above = 2.0 * turns + 1.0  # pi - omega = above pi - angle where omega >= 0
-    below = 2.0 * turns - 1.0  # pi + omega = angle - below pi where omega < 0
-    gap = xp.where(
-        omega >= 0,
-        ((above * _PI_HEAD - angle) + above * _PI_MID) + above * _PI_TAIL,
-        ((angle - below * _PI_HEAD) - below * _PI_MID) - below * _PI_TAIL,
-    )
-    # Within a rounding of an odd multiple of pi, the reduction may land just past pi (gap < 0; e.g.
-    # float32's pi is pi + 8.7e-8): the angle is then reflected to pi - |gap|, the same density.
-    past = gap < 0
-    gap = xp.abs(gap)
-    inside = ((_PI_HEAD - gap) + _PI_MID) + _PI_TAIL
-    return xp.where(past, xp.where(omega < 0, -inside, inside), omega), gap
+    # pi - |omega| = +-(odd pi - angle), with odd = 2 turns +- 1 the odd multiple of pi nearest the
+    # angle on omega's side
+    # (the branches are arrays, so that numpy keeps the dtype: a where of two Python floats is float64)
+    odd = 2.0 * xp.where(omega < 0, turns - 0.5, turns + 0.5)
+    size = ((odd * _PI_HEAD - angle) + odd * _PI_MID) + odd * _PI_TAIL
+    gap = xp.where(omega < 0, -size, size)
+    # Within a rounding of an odd multiple of pi the reduction may land just past pi (float32's pi is
+    # pi + 8.7e-8): the gap is then negative, and the dual form below takes it so (its k = -1 term then
+    # leads, in log space). No reflection of omega: inductor inlines the reduction at each of its many
+    # uses, and a selection on it made compiling the log density take minutes.
+    return omega, gap
 
 
 def _smallest_eps(xp: Any, dtype: Any) -> float:
@@ -81,13 +80,14 @@ def _smallest_eps(xp: Any, dtype: Any) -> float:
     return math.sqrt(1e3 / float(xp.finfo(dtype).max))
 
 
-# Taylor coefficients in y^2 of sinh(y) / y, 1 / (2n + 1)!, n = 0 ... 8: for |y| <= 1/2 the next term
-# is below 3e-23. A polynomial, not sinh(y) / y, because the quotient's derivative, (y cosh y -
-# sinh y) / y^2, cancels to a relative 1e-16 / y^2 (1e-10 at y = 1e-3).
-_SINH_OVER = [1.0 / math.factorial(2 * n + 1) for n in range(9)]
-# ... and of log(h / sin h), 2^(2n - 1) |B_2n| / (n (2n)!), n = 1 ... 11 (Abramowitz & Stegun 4.3.71):
-# for |h| < 1/2 the next term is below 6e-21 (1.4e-19 of the value). The direct form is used above 1/2,
-# where its derivative, 1/h - cot h, loses at most an ulp of 1/h.
+# Taylor coefficients of (1 - e^(-x)) / x, (-1)^n / (n + 1)!, n = 0 ... 4, used below x = 1e-3 (the next
+# term is below 2e-18 there). Not -expm1(-x) / x there, because the quotient's derivative, (x e^(-x) -
+# (1 - e^(-x))) / x^2, cancels to a relative 1e-16 / x^2; from 1e-3 on that is 1e-10 of a term whose
+# weight in log f is at most 2e-7 (eps <= 1/2): below an ulp.
+_ONE_MINUS_EXP_OVER = [(-1.0) ** n / math.factorial(n + 1) for n in range(5)]
+# ... and of log(h / sin h), 2^(2n - 1) |B_2n| / (n (2n)!), n = 1 ... 6 (Abramowitz & Stegun 4.3.71),
+# used below h = 0.1 (the next term is below 2e-18 of the value). The direct form is used above, where
+# its derivative, 1/h - cot h, loses at most an ulp of 1/h (10 ulps of the derivative's size, 1).
 _LOG_H_OVER_SIN_H = [
     0.16666666666666666,
     0.005555555555555556,
@@ -95,11 +95,6 @@ _LOG_H_OVER_SIN_H = [
     2.6455026455026456e-05,
     2.1377799155576935e-06,
     1.803670234005331e-07,
-    1.5661391322766983e-08,
-    1.3884130493737299e-09,
-    1.2504359176004997e-10,
-    1.1402575602296091e-11,
-    1.0502923908637557e-12,
 ]
 
 
@@ -112,56 +107,48 @@ def _polynomial(coefficients: list[float], z: Any) -> Any:
 
 
 def _log_h_over_sin_h(xp: Any, h: Any) -> Any:
-    """``log(h / sin h)`` for ``|h| <= pi / 2`` (its series below 1/2, see ``_LOG_H_OVER_SIN_H``)."""
-    small = xp.abs(h) < 0.5
+    """``log(h / sin h)`` for ``|h| <= pi / 2`` (its series below 0.1, see ``_LOG_H_OVER_SIN_H``)."""
+    small = xp.abs(h) < 0.1
     hs = xp.where(small, 1.0, h)
     h2 = h * h
     return xp.where(small, h2 * _polynomial(_LOG_H_OVER_SIN_H, h2), xp.log(hs / xp.sin(hs)))
 
 
 def _log_density_dual(xp: Any, omega: Any, gap: Any, eps: Any) -> Any:
-    """``log f`` by the Poisson dual, for ``|omega| <= pi`` (``gap = pi - |omega|``) and ``0 < eps <= 2``.
+    """``log f`` by the Poisson dual, for ``|omega| <= pi`` (``gap = pi - |omega|``, signed) and ``0 <
+    eps <= 1/2``, where the pair ``k = +-1`` is the only one that counts.
 
-    Relative to the ``k = 0`` term, the pair ``k = +-m`` contributes ``(-1)^m`` times
-
-        e^(-c) + e^(-b) - (2 pi m / w) (e^(-b) - e^(-c)),   b = pi m (pi m - w) / eps,
-                                                             c = pi m (pi m + w) / eps,
-
-    with ``w = |omega|``. Where ``x = c - b = 2 pi m w / eps >= 1`` it is evaluated so, the last part as
-    ``exp(log(2 pi m / w) - b) (1 - e^(-x))``: the large factor enters through the exponent, so that a
-    tiny ``eps`` meets no overflow times zero. Below, where ``omega -> 0`` would divide 0 by 0, it is the
-    same function written even in ``omega``, ``2 e^(-a) cosh(y) - (4 pi^2 m^2 / eps) e^(-a) sinh(y) / y``
-    with ``a = pi^2 m^2 / eps`` and ``y = pi m omega / eps`` (``|y| < 1/2``), so that every derivative at
-    the identity is that of an even function."""
+    Relative to the ``k = 0`` term, ``1 + `` that pair is ``T = (1 - e^(-c)) + e^(-b) A`` with ``w =
+    |omega|``, ``b = pi gap / eps``, ``c = pi (pi + w) / eps``, ``x = 2 pi w / eps`` and ``A = (4 pi^2 /
+    eps) (1 - e^(-x)) / x - 1 >= 1`` (``(2 pi / w)(e^(-b) - e^(-c)) = (4 pi^2 / eps) e^(-b) (1 - e^(-x)) /
+    x``: no 0 / 0 at the identity). ``log T`` is the ``logaddexp`` of ``log(1 - e^(-c))`` and ``-b + log
+    A``, with ``log A`` from ``log((4 pi^2 / eps) (1 - e^(-x)) / x)``: no overflow for any ``eps``, and
+    just past pi (``b < 0``), where the ``k = -1`` term leads, its exponent is exact. ``w`` is taken by a
+    selection, whose derivative at 0 is 1 (``abs``'s is 0): ``T`` is even in ``w``, so every derivative
+    at the identity is exact."""
     log_eps = xp.log(eps)
-    w = xp.abs(omega)
-    total = 0.0
-    for m in range(1, _PAIRS + 1):
-        pm = math.pi * m
-        a = pm * pm / eps
-        x = (2.0 * pm) * w / eps
-        wide = x >= 1.0
-        # |x| >= 1: w > 0, and both exponents b, c >= 0
-        ww = xp.where(wide, w, 1.0)
-        b = pm * ((m - 1) * math.pi + gap) / eps
-        c = pm * (pm + ww) / eps
-        far = xp.exp(-c) + xp.exp(-b) - xp.exp(math.log(2.0 * pm) - xp.log(ww) - b) * -xp.expm1(-(c - b))
-        # |x| < 1: even in omega
-        y = xp.where(wide, 0.0, pm * omega / eps)
-        near = 2.0 * xp.exp(-a) * xp.cosh(y) - xp.exp(math.log(4.0 * pm * pm) - log_eps - a) * _polynomial(
-            _SINH_OVER, y * y
-        )
-        term = xp.where(wide, far, near)
-        total = total - term if m % 2 else total + term
+    w = xp.where(omega < 0, -omega, omega)
+    x = (2.0 * math.pi) * w / eps
+    near = x < 1e-3
+    xs = xp.where(near, 1.0, x)
+    log_ratio = xp.where(
+        near,
+        xp.log(_polynomial(_ONE_MINUS_EXP_OVER, xp.where(near, x, 0.0))),
+        xp.log(-xp.expm1(-xs)) - xp.log(xs),
+    )
+    log_ka = math.log(4.0 * math.pi * math.pi) - log_eps + log_ratio  # log((4 pi^2 / eps) (1 - e^-x) / x)
+    log_a = log_ka + xp.log1p(-xp.exp(-log_ka))
+    c = math.pi * (math.pi + w) / eps
+    log_t = xp.logaddexp(xp.log1p(-xp.exp(-c)), log_a - math.pi * gap / eps)
     return (
         (0.5 * math.log(math.pi) - 1.5 * log_eps + 0.25 * eps - omega * omega / (4.0 * eps))
         + _log_h_over_sin_h(xp, 0.5 * omega)
-        + xp.log1p(total)
+        + log_t
     )
 
 
 def _log_density_series(xp: Any, omega: Any, eps: Any) -> Any:
-    """``log f`` by the series, for ``eps >= 2``: ``log1p`` of its terms ``l >= 1``, with
+    """``log f`` by the series, for ``eps >= 1/2``: ``log1p`` of its terms ``l >= 1``, with
     ``sin((l + 1/2) omega) / sin(omega / 2) = 1 + 2 sum_{j=1}^{l} cos(j omega)`` (finite at 0)."""
     total = 0.0
     kernel = 1.0
