@@ -16,8 +16,8 @@ Two exact forms of the same function are evaluated, each where it needs few term
           * sum_k (-1)^k (omega + 2 pi k) e^(-(omega + 2 pi k)^2 / (4 eps)),
 
   taken in log space: the ``k = 0`` term's ``-omega^2 / (4 eps)`` and the prefactor are added as logs,
-  and the other terms enter as ``log1p`` of their sum relative to it, whose terms ``k = +-m`` fall as
-  ``(4 pi^2 m^2 / eps) exp(-pi^2 m^2 / eps)``: ``m = 2`` is below 1e-32 at ``eps = 1/2`` (1 pair).
+  and the other terms relative to it, whose pairs ``k = +-m`` fall as ``(4 pi^2 m^2 / eps) exp(-pi^2
+  m^2 / eps)``, through a ``logaddexp``: ``m = 2`` is below 1e-32 at ``eps = 1/2``, so one pair counts.
 
 So the log density is finite and accurate far into the tail (``f`` itself underflows there: ``log f``
 is about ``-5e8`` at ``omega = pi, sigma = 1e-4``), with no truncated series and no ``+1e-6`` guard.

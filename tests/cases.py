@@ -1367,7 +1367,8 @@ OPS += [
 # tests/test_igso3.py checks that the two agree where both are summed. Each case quaternion gives the
 # angle of its rotation (0 to pi: half-turns, near them, near the identity, the zero quaternion's 0)
 # and a sigma from 0.3 to 10, log-uniform in the first vector component x of its unit quaternion
-# (0.3 (10 / 0.3)^((x + 1) / 2)): both forms of the density and both of the dual's terms are reached.
+# (0.3 (10 / 0.3)^((x + 1) / 2)): both forms of the density, and both of its branches at the identity,
+# are reached.
 # Not below 0.3: the table's derivative checks take central differences with a step of 1e-6 relative,
 # whose error grows as the curvature of log f about pi, (pi / sigma^2)^2, does; tests/test_igso3.py
 # checks values and derivatives from sigma = 1e-4 against the reference's own derivatives.

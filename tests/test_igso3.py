@@ -33,9 +33,9 @@ from scipy import integrate
 import diffquat.numpy as dnp
 
 # From the concentrations of protein-diffusion schedules (1e-4 ... 5e-4) to nearly uniform, both sides
-# of the switch between the two forms (sigma = 2), and angles from the identity (the dual's 0/0) to
-# pi and past it (reduced to [-pi, pi]).
-SIGMAS = [1e-4, 5e-4, 2e-3, 0.02, 0.1, 0.3, 1.0, 1.99, 2.0, 2.01, 3.0, 10.0, 30.0]
+# of the switch between the two forms (sigma = 1, eps = 1/2), and angles from the identity (the dual's
+# 0/0) to pi and past it (reduced to [-pi, pi]).
+SIGMAS = [1e-4, 5e-4, 2e-3, 0.02, 0.1, 0.3, 0.99, 1.0, 1.01, 2.0, 3.0, 10.0, 30.0]
 ANGLES = [0.0, 1e-9, 1e-5, 1e-3, 0.1, 1.0, 2.0, 3.0, math.pi - 1e-6, math.pi, 4.0, -1.0, 7.0]
 ULPS = {"float64": 4, "float32": 4}
 
@@ -132,7 +132,7 @@ def test_derivatives_match_the_reference(
 @pytest.mark.parametrize(("omega", "eps"), [(0.3, 0.05), (2.0, 0.5), (3.1, 2.0), (1e-3, 1.0), (math.pi, 0.2)])
 def test_the_two_forms_of_the_reference_agree(omega: float, eps: float) -> None:
     """The defining series and its Poisson dual (the reference's form below eps = 0.05, and the
-    library's below eps = 2) agree to 40 digits where both converge: the dual, its (-1)^k included,
+    library's below eps = 1/2) agree to 40 digits where both converge: the dual, its (-1)^k included,
     is the series."""
     with mpmath.workdps(60):
         w, e = mpmath.mpf(omega), mpmath.mpf(eps)
