@@ -28,8 +28,8 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from ._algebra import match_rank
-from ._core import op
+from ._algebra import _canonical_components, match_rank, quaternion_to_axis_angle
+from ._core import Conversion, matrix_to_quaternion, op
 
 # eps = sigma^2 / 2 where the two forms trade (module docstring): both are exact to rounding there,
 # and the graph is small (each pair or term is ~15 operations; compilers inline them all).
@@ -98,6 +98,16 @@ _LOG_H_OVER_SIN_H = [
 ]
 
 
+# What the score needs, each divided by its argument analytically (see _score_dual): the series of
+# psi2(x) = (phi + 2 phi') / x = sum_{n>=1} (-1)^(n+1) n x^(n-1) / (n+2)!, phi(x) = (1 - e^(-x)) / x, used
+# below x = 0.01 (the next term is below 2e-14 of the value, in a part of weight below 3e-6); of
+# (d/dh log(h / sin h)) / (4 h) = sum_n (n c_n / 2) h^(2n - 2), below h = 0.1; of sin(t) / t, 1 - t^2 / 6
+# + t^4 / 120, below t = 0.01 (next term below 2e-16).
+_PSI2 = [(-1.0) ** (n + 1) * n / math.factorial(n + 2) for n in range(1, 6)]
+_LOG_H_OVER_SIN_H_SLOPE = [0.5 * n * c for n, c in enumerate(_LOG_H_OVER_SIN_H, start=1)]
+_SINC = [1.0, -1.0 / 6.0, 1.0 / 120.0]
+
+
 def _polynomial(coefficients: list[float], z: Any) -> Any:
     """``sum_n coefficients[n] z^n`` by Horner's rule."""
     out = coefficients[-1]
@@ -127,6 +137,16 @@ def _log_density_dual(xp: Any, omega: Any, gap: Any, eps: Any) -> Any:
     selection, whose derivative at 0 is 1 (``abs``'s is 0): ``T`` is even in ``w``, so every derivative
     at the identity is exact."""
     log_eps = xp.log(eps)
+    _, _, log_t = _dual_pair(xp, omega, gap, eps, log_eps)
+    return (
+        (0.5 * math.log(math.pi) - 1.5 * log_eps + 0.25 * eps - omega * omega / (4.0 * eps))
+        + _log_h_over_sin_h(xp, 0.5 * omega)
+        + log_t
+    )
+
+
+def _dual_pair(xp: Any, omega: Any, gap: Any, eps: Any, log_eps: Any) -> tuple[Any, Any, Any]:
+    """``x``, ``log((1 - e^(-x)) / x)`` and ``log T`` of :func:`_log_density_dual`."""
     w = xp.where(omega < 0, -omega, omega)
     x = (2.0 * math.pi) * w / eps
     near = x < 1e-3
@@ -139,12 +159,7 @@ def _log_density_dual(xp: Any, omega: Any, gap: Any, eps: Any) -> Any:
     log_ka = math.log(4.0 * math.pi * math.pi) - log_eps + log_ratio  # log((4 pi^2 / eps) (1 - e^-x) / x)
     log_a = log_ka + xp.log1p(-xp.exp(-log_ka))
     c = math.pi * (math.pi + w) / eps
-    log_t = xp.logaddexp(xp.log1p(-xp.exp(-c)), log_a - math.pi * gap / eps)
-    return (
-        (0.5 * math.log(math.pi) - 1.5 * log_eps + 0.25 * eps - omega * omega / (4.0 * eps))
-        + _log_h_over_sin_h(xp, 0.5 * omega)
-        + log_t
-    )
+    return x, log_ratio, xp.logaddexp(xp.log1p(-xp.exp(-c)), log_a - math.pi * gap / eps)
 
 
 def _log_density_series(xp: Any, omega: Any, eps: Any) -> Any:
@@ -156,6 +171,70 @@ def _log_density_series(xp: Any, omega: Any, eps: Any) -> Any:
         kernel = kernel + 2.0 * xp.cos(ell * omega)
         total = total + (2 * ell + 1) * xp.exp(-(ell * (ell + 1)) * eps) * kernel
     return xp.log1p(total)
+
+
+def _score_dual(xp: Any, omega: Any, gap: Any, eps: Any) -> Any:
+    """``(d log f / d omega) / omega`` by the dual form, each part divided by omega analytically.
+
+    Of ``log T``: with ``T = (1 - e^(-c)) + e^(-b) A`` (see :func:`_log_density_dual`), ``T' = (pi / eps)
+    e^(-b) (e^(-x) - 1 + (4 pi^2 / eps)(phi + 2 phi'))`` for ``phi(x) = (1 - e^(-x)) / x``, and ``e^(-x) -
+    1 = -x phi``, ``phi + 2 phi' = x psi2(x)``, so ``T' / (w T) = (2 pi^2 / eps^2) ((4 pi^2 / eps) psi2 -
+    phi) e^(-b) / T``, the last factor as ``exp(-b - log T)``. Of the rest: ``-1 / (2 eps)``, and
+    ``(1 / h - cot h) / (4 h)`` with ``h = omega / 2``."""
+    log_eps = xp.log(eps)
+    x, log_ratio, log_t = _dual_pair(xp, omega, gap, eps, log_eps)
+    near = x < 0.01
+    xs = xp.where(near, 1.0, x)
+    psi2 = xp.where(
+        near,
+        _polynomial(_PSI2, xp.where(near, x, 0.0)),
+        (xs * (1.0 + xp.exp(-xs)) + 2.0 * xp.expm1(-xs)) / (xs * xs * xs),
+    )
+    # 2 pi^2 / eps^2 as a product, not inside the exp: an exponent of size ~40 would carry ~40 ulps
+    # into a term that near pi cancels against -omega / (2 eps) (both ~pi / sigma^2)
+    weight = (2.0 * math.pi**2) / (eps * eps) * xp.exp(-math.pi * gap / eps - log_t)
+    pair = weight * ((4.0 * math.pi**2) * psi2 / eps - xp.exp(log_ratio))
+    h = 0.5 * omega
+    small = xp.abs(h) < 0.1
+    hs = xp.where(small, 1.0, h)
+    sine = xp.where(
+        small,
+        _polynomial(_LOG_H_OVER_SIN_H_SLOPE, h * h),
+        (1.0 / hs - xp.cos(hs) / xp.sin(hs)) / (4.0 * hs),
+    )
+    return -0.5 / eps + sine + pair
+
+
+def _score_series(xp: Any, omega: Any, eps: Any) -> Any:
+    """``(d log f / d omega) / omega`` by the series: the kernel ``1 + 2 sum_j cos(j omega)`` has
+    derivative over omega ``-2 sum_j j^2 sin(j omega) / (j omega)``."""
+    total, slope = 0.0, 0.0
+    kernel, kernel_slope = 1.0, 0.0
+    for ell in range(1, _TERMS + 1):
+        t = ell * omega
+        small = xp.abs(t) < 0.01
+        ts = xp.where(small, 1.0, t)
+        sinc = xp.where(small, _polynomial(_SINC, t * t), xp.sin(ts) / ts)
+        kernel = kernel + 2.0 * xp.cos(t)
+        kernel_slope = kernel_slope - (2.0 * ell * ell) * sinc
+        weight = (2 * ell + 1) * xp.exp(-(ell * (ell + 1)) * eps)
+        total = total + weight * kernel
+        slope = slope + weight * kernel_slope
+    return slope / (1.0 + total)
+
+
+def _forms(xp: Any, sigma: Any) -> tuple[Any, Any, Any]:
+    """Whether the dual form applies at ``sigma``, and ``eps = sigma^2 / 2`` as the dual (at least
+    :func:`_smallest_eps`) and the series take it, each the switch where the other applies.
+    Selections, not clip: a clip's derivative at its bound is 1/2 in jax (a tie of min or max)."""
+    eps = 0.5 * (sigma * sigma)
+    narrow = eps <= _SWITCH
+    smallest = _smallest_eps(xp, eps.dtype)
+    return (
+        narrow,
+        xp.where(narrow, xp.where(eps < smallest, smallest, eps), _SWITCH),
+        xp.where(narrow, _SWITCH, eps),
+    )
 
 
 @op(angle=(), sigma=())
@@ -179,12 +258,52 @@ def igso3_log_density(xp: Any, angle: Any, sigma: Any) -> Any:
         marginal ``(1 - cos omega) / pi`` over [0, pi] is 1."""
     angle, sigma = match_rank(xp, angle, sigma)
     omega, gap = _fold(xp, angle)
-    eps = 0.5 * (sigma * sigma)
-    # Selections, not clip: a clip's derivative at its bound is 1/2 in jax (a tie of min or max).
-    narrow = eps <= _SWITCH
-    smallest = _smallest_eps(xp, eps.dtype)
-    dual = _log_density_dual(
-        xp, omega, gap, xp.where(narrow, xp.where(eps < smallest, smallest, eps), _SWITCH)
+    narrow, eps_dual, eps_series = _forms(xp, sigma)
+    return xp.where(
+        narrow, _log_density_dual(xp, omega, gap, eps_dual), _log_density_series(xp, omega, eps_series)
     )
-    series = _log_density_series(xp, omega, xp.where(narrow, _SWITCH, eps))
-    return xp.where(narrow, dual, series)
+
+
+@op(matrix=(3, 3), sigma=(), mean=(3, 3))
+def igso3_score(
+    xp: Any, matrix: Any, sigma: Any, mean: Any = None, *, to_quaternion: Conversion = matrix_to_quaternion
+) -> Any:
+    """The score of IGSO(3), the gradient of its log density at rotation matrices, as body-frame
+    tangent vectors (docs/igso3.md).
+
+    Args:
+        matrix: rotation matrices ``R``, shape ``(..., 3, 3)`` (column vectors, active).
+        sigma: the concentration, shape ``(...)``, as in :func:`igso3_log_density`, broadcasting against
+            the batch of ``matrix``.
+        mean: the distribution's mean rotation, ``(..., 3, 3)``, or None for the identity.
+
+    Returns:
+        ``(..., 3)``: with ``phi = log(mean^T R)`` (the rotation vector, angle ``omega = |phi|`` in [0,
+        pi]), ``(d log f / d omega) phi / omega``, the derivative of ``delta -> log p(R exp(delta))``
+        at 0 (``phi`` is fixed by the Jacobians of log, so none appears); the space-frame gradient, of
+        ``exp(delta) R``, is ``R @ score``. The factor ``(d log f / d omega) / omega`` is written out
+        with each part divided by omega analytically: exact at the identity, where the score is 0 and
+        its derivative is ``(d^2 log f / d omega^2)(0)`` times the identity, and 0 at ``omega = pi`` to
+        rounding (the gap to pi is taken from the quaternion, not as pi less a rounded angle). Near
+        pi at small sigma it changes by ``(pi / sigma^2)^2`` per radian: the rounding of the matrix
+        itself decides it there."""
+    relative = matrix
+    if mean is not None:
+        mean, matrix = match_rank(xp, mean, matrix)
+        relative = xp.matmul(xp.swapaxes(mean, -1, -2), matrix)
+    # From the relative rotation's quaternion (w >= 0): the angle 2 atan2(s, w) and its gap to pi,
+    # 2 atan2(w, s), each without cancellation (pi - omega from a rounded omega would be off by pi's
+    # rounding, 1.2e-16, which near pi moves the score by (pi / sigma^2)^2 times as much).
+    w, x, y, z = _canonical_components(xp, to_quaternion(xp, relative), True)
+    squared = x * x + y * y + z * z
+    positive = squared > 0
+    # |xyz| with a zero derivative at 0: the factor is even in omega, so its derivative there is 0
+    s = xp.where(positive, xp.sqrt(xp.where(positive, squared, 1.0)), 0.0)
+    omega = 2.0 * xp.atan2(s, w)
+    gap = 2.0 * xp.atan2(w, s)
+    omega, gap, sigma = match_rank(xp, omega, gap, sigma)
+    narrow, eps_dual, eps_series = _forms(xp, sigma)
+    factor = xp.where(narrow, _score_dual(xp, omega, gap, eps_dual), _score_series(xp, omega, eps_series))
+    phi = quaternion_to_axis_angle(xp, xp.stack([w, x, y, z], axis=-1))
+    factor, phi = match_rank(xp, factor[..., None], phi)
+    return factor * phi

@@ -1417,6 +1417,57 @@ def reference_igso3_log_density(angle: float, sigma: float) -> float:
         return float(igso3_reference(mpmath.mpf(angle), mpmath.mpf(sigma)))
 
 
+def igso3_reference_slope(omega: Any, sigma: Any) -> Any:
+    """d log f / d omega at omega in (0, pi] as an mpmath number, from the derivative of each form
+    (of the dual's sum F, ``F' = sum_k (-1)^k (1 - u_k^2 / (2 eps)) e^(-u_k^2 / (4 eps))``, less
+    ``cot(omega / 2) / 2``; of the series term by term)."""
+    eps = sigma**2 / 2
+    half = omega / 2
+    if eps >= mpmath.mpf("0.05"):
+        total, slope, ell = mpmath.mpf(0), mpmath.mpf(0), 0
+        while True:
+            weight = (2 * ell + 1) * mpmath.exp(-ell * (ell + 1) * eps)
+            lw = (ell + mpmath.mpf(0.5)) * omega
+            total += weight * mpmath.sin(lw) / mpmath.sin(half)
+            slope += weight * (
+                (ell + 0.5) * mpmath.cos(lw) * mpmath.sin(half) - 0.5 * mpmath.sin(lw) * mpmath.cos(half)
+            )
+            if ell > 2 and weight * (2 * ell + 1) ** 2 < mpmath.mpf(10) ** -60:
+                return slope / mpmath.sin(half) ** 2 / total
+            ell += 1
+    us = [omega + 2 * mpmath.pi * k for k in range(-30, 31)]
+    # each term relative to the k = 0 one, exp(-omega^2 / (4 eps)), which cancels from F' / F
+    rel = [
+        mpmath.exp(-(u**2 - omega**2) / (4 * eps)) * (-1) ** k
+        for k, u in zip(range(-30, 31), us, strict=True)
+    ]
+    f = mpmath.fsum(r * u for r, u in zip(rel, us, strict=True))
+    df = mpmath.fsum(r * (1 - u**2 / (2 * eps)) for r, u in zip(rel, us, strict=True))
+    return df / f - mpmath.cot(half) / 2
+
+
+def oracle_igso3_score(matrix: np.ndarray, sigma: np.ndarray, mean: np.ndarray) -> np.ndarray:
+    """(d log f / d omega) phi / omega with phi = log(mean^T R) (scipy's rotation vector), 0 at the
+    identity; the derivative by mpmath at 50 digits (``igso3_reference_slope``)."""
+    relative = np.swapaxes(mean, -1, -2) @ matrix
+    batch = np.broadcast_shapes(relative.shape[:-2], np.shape(sigma))
+    flat = relative.reshape(-1, 3, 3)
+    phi = Rotation.from_matrix(flat).as_rotvec() if len(flat) else np.zeros((0, 3))
+    phi = np.broadcast_to(phi.reshape((*relative.shape[:-2], 3)), (*batch, 3))
+    angle = np.linalg.norm(phi, axis=-1)
+    s = np.broadcast_to(sigma, batch)
+    factor = np.array([_igso3_factor(float(w), float(y)) for w, y in zip(angle.flat, s.flat, strict=True)])
+    return factor.reshape(batch)[..., None] * phi
+
+
+@functools.cache
+def _igso3_factor(angle: float, sigma: float) -> float:
+    if angle == 0.0:
+        return 0.0  # the score at the identity is 0; the factor's value does not matter there
+    with mpmath.workdps(50):
+        return float(igso3_reference_slope(mpmath.mpf(angle), mpmath.mpf(sigma)) / angle)
+
+
 def oracle_igso3_log_density(angle: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     a, s = np.broadcast_arrays(angle, sigma)
     return np.array(
@@ -1437,6 +1488,16 @@ def _igso3_inputs(q: np.ndarray) -> tuple[np.ndarray, ...]:
     return angle, 0.3 * (10.0 / 0.3) ** (0.5 * (u[..., 1] + 1.0))
 
 
+def _igso3_score_inputs(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    """mean R(q) for a uniform mean, so that the rotation relative to the mean is the case's R(q)."""
+    mean = _companion_matrix(q)
+    return mean @ oracle_quaternion_to_matrix(q), _igso3_inputs(q)[1], mean
+
+
+def _igso3_score_gradient_inputs(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    return q, _igso3_inputs(q)[1], _companion(q, seed=11)
+
+
 OPS += [
     Op(
         "igso3_log_density",
@@ -1447,6 +1508,31 @@ OPS += [
         scalar_first=False,
         smooth_at=lambda case: True,
         error_scale=igso3_scale,
+    ),
+    Op(
+        "igso3_score",
+        _igso3_score_inputs,
+        oracle_igso3_score,
+        quaternion_args=(),
+        output="other",
+        scalar_first=False,
+        # through quaternions, as matrix_to_quaternion's gradient: on the manifold (the score is the
+        # gradient of a smooth function there, at half-turns too), not along the nine entries, where
+        # the conversion's pivot choice makes the extension off SO(3) kink
+        grad_inputs=_igso3_score_gradient_inputs,
+        grad_fn=lambda m, q, sigma, mean: m.igso3_score(
+            m.quaternion_to_matrix(mean) @ m.quaternion_to_matrix(q), sigma, m.quaternion_to_matrix(mean)
+        ),
+        smooth_at=lambda case: True,
+        # d score / dq is up to (2 / |q|) (pi / sigma^2)^2: 2e4 * 1.2e3 at the float16 norm 1e-4 and
+        # sigma = 0.3, beyond float16's 65504
+        finite_gradient=lambda case, dtype: not (case.name == "norms" and dtype == "float16"),
+        # The score's size, 1 + pi / sigma^2, and its sensitivity to the rotation: near pi an error of
+        # the angle moves it by up to (pi / sigma^2)^2 times as much, and a float32 matrix's angle is
+        # defined only to an ulp (its projection onto SO(3) decides it).
+        error_scale=lambda matrix, sigma, mean: (
+            1.0 + np.pi / np.asarray(sigma) ** 2 + (np.pi / np.asarray(sigma) ** 2) ** 2
+        ),
     ),
 ]
 

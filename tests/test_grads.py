@@ -402,8 +402,10 @@ def test_jax_derivatives(op: Op, backend: Backend, dtype: str) -> None:
     for a, b in zip(fwd, rev, strict=True):
         assert np.all(np.isfinite(a[edge])), _cases_of(~np.isfinite(a).reshape(n, -1).all(-1) & edge, parts)
         assert_rows_close(a, b, 1e-10, smooth)
-    # grad of sum_n weights_n (sum_o f_no)^2: J^T (2 weights_n S_n) per row
-    s = eager.reshape(n, -1).sum(-1)
+    # grad of sum_n weights_n (sum_o f_no)^2: J^T (2 weights_n S_n) per row, with S from the compiled
+    # program's own value (where an op is ill-conditioned, as the IGSO(3) score just short of pi, eager
+    # and compiled values differ by its conditioning, and this check is of the pullback, not the value)
+    s = got["value"].reshape(n, -1).sum(-1)
     for g, j in zip(got["grad"], rev, strict=True):
         want = np.einsum("noi,n->ni", j, 2 * extra["weights"] * s)
         assert np.all(np.isfinite(g[edge]))

@@ -24,11 +24,13 @@ from cases import (
     igso3_log_density_dual,
     igso3_log_density_series,
     igso3_reference,
+    igso3_reference_slope,
     igso3_scale,
     reference_igso3_log_density,
 )
 from conftest import Backend
 from scipy import integrate
+from scipy.spatial.transform import Rotation
 
 import diffquat.numpy as dnp
 
@@ -179,4 +181,107 @@ def test_documented_edge_cases(backend: Backend, precision: str) -> None:
     shifted = _values(backend, np.array([0.5 + 2 * math.pi, -2.0, -0.5, 2.0 - 4 * math.pi]), np.full(4, 0.7))
     np.testing.assert_allclose(
         shifted, _values(backend, np.array([0.5, 2.0, 0.5, 2.0]), np.full(4, 0.7)), rtol=1e-13
+    )
+
+
+# ---------------------------------------------------------------------------------------------------
+# The score.
+
+
+def _about_x(angle: np.ndarray) -> np.ndarray:
+    """Rotations about x by each angle, their entries rounded to float64."""
+    c, s = np.cos(angle), np.sin(angle)
+    one, zero = np.ones_like(angle), np.zeros_like(angle)
+    return np.stack([one, zero, zero, zero, c, -s, zero, s, c], axis=-1).reshape(*angle.shape, 3, 3)
+
+
+SCORE_ULPS = 16
+
+
+def test_score_matches_the_reference(backend: Backend) -> None:
+    """Rotations about x by each angle of the grid (0 to pi) at each sigma from 1e-4: the score is
+    ``(d log f / d omega)`` along x, within 16 ulps of ``1 + omega / sigma^2`` of the reference at the
+    rotation's own angle, ``atan2`` of its rounded sine and cosine (near pi at sigma = 1e-4 the score
+    changes by (pi / sigma^2)^2 per radian: the rounding of the matrix decides it). The other two
+    components are 0."""
+    angle, sigma = grid()
+    inside = (angle >= 0) & (angle <= math.pi)
+    angle, sigma = angle[inside], sigma[inside]
+    matrices = _about_x(angle)
+    got = backend.to_numpy(
+        backend.module.igso3_score(backend.array(matrices, "float64"), backend.array(sigma, "float64"))
+    )
+    expected = []
+    with mpmath.workdps(50):
+        for m, s in zip(matrices, sigma, strict=True):
+            w = mpmath.atan2(mpmath.mpf(m[2, 1]), mpmath.mpf(m[1, 1]))
+            expected.append(0.0 if w == 0 else float(igso3_reference_slope(w, mpmath.mpf(s))))
+    scale = 1.0 + angle / sigma**2
+    error = np.abs(got[:, 0] - np.array(expected)) / scale / np.finfo(np.float64).eps
+    worst = int(np.argmax(error))
+    assert error[worst] <= SCORE_ULPS, (
+        f"{error[worst]:.1f} ulps at angle {angle[worst]}, sigma {sigma[worst]}"
+    )
+    assert np.all(got[:, 1:] == 0)
+
+
+@pytest.mark.parametrize("sigma", [0.05, 0.5, 3.0])
+def test_score_is_the_derivative_of_the_log_density_along_a_tangent(sigma: float) -> None:
+    """<score(R), delta> equals the central difference of log p(R exp(h delta)) in h, log p(R) =
+    log f(|log(mean^T R)|), for random rotations, means and tangents (float64, h = 1e-5: the difference
+    is accurate to ~1e-9 of the curvature's scale, the bound 1e-7 of the score's)."""
+    rng = np.random.default_rng(5)
+    rotations = Rotation.random(20, random_state=6).as_matrix()
+    means = Rotation.random(20, random_state=7).as_matrix()
+    delta = rng.normal(size=(20, 3))
+    score = dnp.igso3_score(rotations, sigma, means)
+
+    def log_p(r: np.ndarray) -> np.ndarray:
+        return dnp.igso3_log_density(
+            np.linalg.norm(dnp.so3_log(np.swapaxes(means, -1, -2) @ r), axis=-1), sigma
+        )
+
+    h = 1e-5
+    moved = [rotations @ dnp.so3_exp(sign * h * delta) for sign in (1.0, -1.0)]
+    fd = (log_p(moved[0]) - log_p(moved[1])) / (2 * h)
+    np.testing.assert_allclose(
+        np.sum(score * delta, axis=-1), fd, rtol=0, atol=1e-7 * (1.0 + math.pi / sigma**2)
+    )
+
+
+@pytest.mark.parametrize("sigma", [0.01, 0.5, 3.0])
+def test_score_at_the_identity_and_at_pi(backend: Backend, sigma: float) -> None:
+    """At the identity the score is 0 and its derivative in the body frame is (d^2 log f / d omega^2)(0)
+    times the identity (torch and jax; the reference's second derivative at 0); at a half-turn it is
+    0 to rounding; ``mean=None`` is the identity mean."""
+    module = backend.module
+    eye = np.eye(3)
+    assert np.all(backend.to_numpy(module.igso3_score(backend.array(eye, "float64"), sigma)) == 0)
+    # an exact half-turn (cos pi = -1, sin pi = 0 exactly): the angle's gap to pi is computed, not pi
+    # less a rounded angle, so the score is 0 to rounding even where it changes by (pi / sigma^2)^2
+    half = backend.to_numpy(module.igso3_score(backend.array(np.diag([1.0, -1.0, -1.0]), "float64"), sigma))
+    assert np.all(np.abs(half) <= SCORE_ULPS * np.finfo(np.float64).eps * (1 + math.pi / sigma**2))
+    rotations = backend.array(Rotation.random(4, random_state=8).as_matrix(), "float64")
+    np.testing.assert_array_equal(
+        backend.to_numpy(module.igso3_score(rotations, sigma)),
+        backend.to_numpy(module.igso3_score(rotations, sigma, backend.array(eye, "float64"))),
+    )
+    if not backend.differentiable:
+        return
+    with mpmath.workdps(50):
+        s = mpmath.mpf(sigma)
+        # (d log f / d omega)(t) / t at t = 1e-12: the curvature at 0 plus O(t^2) (the series form
+        # cancels to t^3 of its terms: 36 of the 50 digits)
+        tiny = mpmath.mpf(10) ** -12
+        curvature = float(igso3_reference_slope(tiny, s) / tiny)
+
+    def score_of(d: Any) -> Any:
+        return module.igso3_score(module.so3_exp(d), sigma)
+
+    if backend.name == "torch":
+        jac = torch.func.jacrev(score_of)(torch.zeros(3, dtype=torch.float64))
+    else:
+        jac = jax.jacrev(score_of)(jax.numpy.zeros(3, dtype="float64"))
+    np.testing.assert_allclose(
+        backend.to_numpy(jac), curvature * eye, rtol=1e-13, atol=1e-13 * abs(curvature)
     )

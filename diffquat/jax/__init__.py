@@ -32,6 +32,7 @@ __all__ = [
     "euler_angles_to_quaternion",
     "fit_rotation",
     "igso3_log_density",
+    "igso3_score",
     "matrix_fisher_log_normalizer",
     "matrix_fisher_mode",
     "matrix_fisher_nll",
@@ -396,6 +397,11 @@ _bingham_nll = _compiled(_fi.bingham_nll, "scalar_first", "normalizer")
 @documented(_igso3.igso3_log_density)
 def igso3_log_density(angle: ArrayLike, sigma: ArrayLike) -> Array:
     return _B(_igso3.igso3_log_density, angle, sigma)
+
+
+@documented(_igso3.igso3_score)
+def igso3_score(matrix: ArrayLike, sigma: ArrayLike, mean: ArrayLike | None = None) -> Array:
+    return _B(_igso3.igso3_score, matrix, sigma, mean, to_quaternion=_M2Q)
 
 
 @documented(_fi.matrix_fisher_log_normalizer)

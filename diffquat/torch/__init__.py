@@ -29,6 +29,7 @@ __all__ = [
     "euler_angles_to_quaternion",
     "fit_rotation",
     "igso3_log_density",
+    "igso3_score",
     "matrix_fisher_log_normalizer",
     "matrix_fisher_mode",
     "matrix_fisher_nll",
@@ -422,6 +423,11 @@ _reduced_log_normalizer = custom_derivative(
 @documented(_igso3.igso3_log_density)
 def igso3_log_density(angle: Tensor | float, sigma: Tensor | float) -> Tensor:
     return _B(_igso3.igso3_log_density, angle, sigma)
+
+
+@documented(_igso3.igso3_score)
+def igso3_score(matrix: Tensor, sigma: Tensor | float, mean: Tensor | None = None) -> Tensor:
+    return _B(_igso3.igso3_score, matrix, sigma, mean, to_quaternion=_M2Q)
 
 
 @documented(_fi.matrix_fisher_log_normalizer)
