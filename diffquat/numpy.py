@@ -23,6 +23,7 @@ __all__ = [
     "euler_angles_to_matrix",
     "euler_angles_to_quaternion",
     "fit_rotation",
+    "igso3_angle_cdf",
     "igso3_log_density",
     "igso3_score",
     "matrix_fisher_log_normalizer",
@@ -357,6 +358,11 @@ def random_quaternions(
 
 
 # The matrix Fisher distribution on SO(3) and the Bingham NLL of the 10D head (diffquat._fisher).
+
+
+@documented(_igso3.igso3_angle_cdf)
+def igso3_angle_cdf(angle: ArrayLike, sigma: ArrayLike) -> NDArray[Any]:
+    return np.asarray(_B(_igso3.igso3_angle_cdf, angle, sigma))
 
 
 @documented(_igso3.igso3_log_density)

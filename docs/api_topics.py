@@ -78,7 +78,7 @@ TOPICS: dict[str, list[str]] = {
         "MatrixFisher",
         "special_orthogonal",
     ],
-    "The isotropic Gaussian on SO(3), IGSO(3)": ["igso3_log_density", "igso3_score"],
+    "The isotropic Gaussian on SO(3), IGSO(3)": ["igso3_log_density", "igso3_score", "igso3_angle_cdf"],
     "Rotation heads": [
         "RotationHead",
         "representation_to_matrix",

@@ -31,6 +31,7 @@ __all__ = [
     "euler_angles_to_matrix",
     "euler_angles_to_quaternion",
     "fit_rotation",
+    "igso3_angle_cdf",
     "igso3_log_density",
     "igso3_score",
     "matrix_fisher_log_normalizer",
@@ -392,6 +393,11 @@ _matrix_fisher_log_normalizer = _compiled(_fi.matrix_fisher_log_normalizer, "nor
 _matrix_fisher_nll = _compiled(_fi.matrix_fisher_nll, "normalizer")
 _matrix_fisher_mode = _compiled(_fi.matrix_fisher_mode, "procrustes")
 _bingham_nll = _compiled(_fi.bingham_nll, "scalar_first", "normalizer")
+
+
+@documented(_igso3.igso3_angle_cdf)
+def igso3_angle_cdf(angle: ArrayLike, sigma: ArrayLike) -> Array:
+    return _B(_igso3.igso3_angle_cdf, angle, sigma)
 
 
 @documented(_igso3.igso3_log_density)

@@ -28,6 +28,7 @@ __all__ = [
     "euler_angles_to_matrix",
     "euler_angles_to_quaternion",
     "fit_rotation",
+    "igso3_angle_cdf",
     "igso3_log_density",
     "igso3_score",
     "matrix_fisher_log_normalizer",
@@ -418,6 +419,11 @@ _reduced_log_normalizer = custom_derivative(
     functools.partial(_fi.reduced_log_normalizer_cotangent, moment=_reduced_second_moment),
     captured=_fi.reduced_log_normalizer_taylor,
 )
+
+
+@documented(_igso3.igso3_angle_cdf)
+def igso3_angle_cdf(angle: Tensor | float, sigma: Tensor | float) -> Tensor:
+    return _B(_igso3.igso3_angle_cdf, angle, sigma)
 
 
 @documented(_igso3.igso3_log_density)
