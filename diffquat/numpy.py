@@ -25,6 +25,7 @@ __all__ = [
     "fit_rotation",
     "igso3_angle_cdf",
     "igso3_log_density",
+    "igso3_sample",
     "igso3_score",
     "matrix_fisher_log_normalizer",
     "matrix_fisher_mode",
@@ -368,6 +369,23 @@ def igso3_angle_cdf(angle: ArrayLike, sigma: ArrayLike) -> NDArray[Any]:
 @documented(_igso3.igso3_log_density)
 def igso3_log_density(angle: ArrayLike, sigma: ArrayLike) -> NDArray[Any]:
     return np.asarray(_B(_igso3.igso3_log_density, angle, sigma))
+
+
+def igso3_sample(
+    sigma: ArrayLike, shape: int | tuple[int, ...] = (), *, rng: np.random.Generator | int | None = None
+) -> NDArray[Any]:
+    (checked,), dtype = _B.validate("igso3_sample", sigma)
+    compute = _B.compute_dtype(dtype)
+    generator = np.random.default_rng(rng)
+    size = (*shape_tuple(shape), *checked.shape)
+    uniform = generator.random(size, dtype=compute)
+    normal = generator.standard_normal((*size, 3), dtype=compute)
+    return np.asarray(_B(_igso3.igso3_sample, checked, uniform=uniform, normal=normal))
+
+
+igso3_sample.__doc__ = _igso3.SAMPLE_DOC.format(
+    random="rng: a ``numpy.random.Generator``, or a seed for ``numpy.random.default_rng``."
+)
 
 
 @documented(_igso3.igso3_score)

@@ -78,7 +78,12 @@ TOPICS: dict[str, list[str]] = {
         "MatrixFisher",
         "special_orthogonal",
     ],
-    "The isotropic Gaussian on SO(3), IGSO(3)": ["igso3_log_density", "igso3_score", "igso3_angle_cdf"],
+    "The isotropic Gaussian on SO(3), IGSO(3)": [
+        "igso3_log_density",
+        "igso3_score",
+        "igso3_angle_cdf",
+        "igso3_sample",
+    ],
     "Rotation heads": [
         "RotationHead",
         "representation_to_matrix",

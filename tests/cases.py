@@ -1503,8 +1503,9 @@ def igso3_cdf_reference(omega: Any, sigma: Any) -> Any:
 
 @functools.cache
 def reference_igso3_angle_cdf(angle: float, sigma: float) -> float:
-    """F(omega; sigma) by mpmath at 50 digits, omega clamped to [0, pi]."""
-    with mpmath.workdps(50):
+    """F(omega; sigma) by mpmath at 30 digits (twice float64's: its quadrature at 50 cost minutes),
+    omega clamped to [0, pi]."""
+    with mpmath.workdps(30):
         w = min(max(mpmath.mpf(angle), mpmath.mpf(0)), mpmath.pi)
         return float(igso3_cdf_reference(w, mpmath.mpf(sigma))) if w > 0 else 0.0
 
@@ -1645,6 +1646,7 @@ def both_sides(op: Op) -> list[Op]:
 NOT_IN_TABLE = {
     "random_quaternions": "tests/test_random.py",
     "matrix_fisher_sample": "tests/test_fisher.py",
+    "igso3_sample": "tests/test_igso3.py",
     "symmetry_group": "tests/test_statistics.py",
 }
 

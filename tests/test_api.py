@@ -37,6 +37,7 @@ FACTORY_KEYWORDS = {"numpy": {"dtype"}, "torch": {"dtype", "device"}, "jax": {"d
 OWN_KEYWORDS = {
     "random_quaternions": (RANDOM_SOURCE, FACTORY_KEYWORDS),
     "matrix_fisher_sample": (RANDOM_SOURCE,),
+    "igso3_sample": (RANDOM_SOURCE,),
     "symmetry_group": (FACTORY_KEYWORDS,),
 }
 

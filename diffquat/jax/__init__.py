@@ -33,6 +33,7 @@ __all__ = [
     "fit_rotation",
     "igso3_angle_cdf",
     "igso3_log_density",
+    "igso3_sample",
     "igso3_score",
     "matrix_fisher_log_normalizer",
     "matrix_fisher_mode",
@@ -403,6 +404,21 @@ def igso3_angle_cdf(angle: ArrayLike, sigma: ArrayLike) -> Array:
 @documented(_igso3.igso3_log_density)
 def igso3_log_density(angle: ArrayLike, sigma: ArrayLike) -> Array:
     return _B(_igso3.igso3_log_density, angle, sigma)
+
+
+def igso3_sample(sigma: ArrayLike, shape: int | tuple[int, ...] = (), *, key: Array) -> Array:
+    (checked,), dtype = _B.validate("igso3_sample", sigma)
+    compute = _B.compute_dtype(dtype)
+    size = (*shape_tuple(shape), *checked.shape)
+    k_uniform, k_normal = jax.random.split(key)
+    uniform = jax.random.uniform(k_uniform, size, dtype=compute)
+    normal = jax.random.normal(k_normal, (*size, 3), dtype=compute)
+    return _B(_igso3.igso3_sample, checked, uniform=uniform, normal=normal)
+
+
+igso3_sample.__doc__ = _igso3.SAMPLE_DOC.format(
+    random="key: a ``jax.random`` key (required: JAX has no global random state)."
+)
 
 
 @documented(_igso3.igso3_score)

@@ -30,6 +30,7 @@ __all__ = [
     "fit_rotation",
     "igso3_angle_cdf",
     "igso3_log_density",
+    "igso3_sample",
     "igso3_score",
     "matrix_fisher_log_normalizer",
     "matrix_fisher_mode",
@@ -429,6 +430,22 @@ def igso3_angle_cdf(angle: Tensor | float, sigma: Tensor | float) -> Tensor:
 @documented(_igso3.igso3_log_density)
 def igso3_log_density(angle: Tensor | float, sigma: Tensor | float) -> Tensor:
     return _B(_igso3.igso3_log_density, angle, sigma)
+
+
+def igso3_sample(
+    sigma: Tensor | float, shape: int | tuple[int, ...] = (), *, generator: torch.Generator | None = None
+) -> Tensor:
+    (checked,), dtype = _B.validate("igso3_sample", sigma)
+    compute = _B.compute_dtype(dtype)
+    size = (*shape_tuple(shape), *checked.shape)
+    options: dict[str, Any] = {"generator": generator, "dtype": compute, "device": checked.device}
+    uniform, normal = torch.rand(size, **options), torch.randn((*size, 3), **options)
+    return _B(_igso3.igso3_sample, checked, uniform=uniform, normal=normal)
+
+
+igso3_sample.__doc__ = _igso3.SAMPLE_DOC.format(
+    random="generator: a ``torch.Generator`` to draw from (default: the global one)."
+)
 
 
 @documented(_igso3.igso3_score)
