@@ -173,15 +173,26 @@ def _dual_pair(xp: Any, omega: Any, gap: Any, eps: Any, log_eps: Any) -> tuple[A
     return x, log_ratio, xp.logaddexp(xp.log1p(-xp.exp(-c)), log_a - math.pi * gap / eps)
 
 
+def _series_tails(xp: Any, omega: Any, eps: Any) -> tuple[Any, Any, Any]:
+    """The series' harmonics and weights over a trailing axis ``j = 1 ... 9``: ``j``, the weights'
+    sum ``S = sum_l w_l``, ``w_l = (2l + 1) e^(-l (l + 1) eps)``, and their tails ``W_j = sum_{l >= j}
+    w_l`` (a product with the constant 0/1 matrix ``[l >= j]``: each tail summed directly, not as
+    ``S`` less a partial sum, which near pi, where f is small, would cost ~10 ulps). With the kernel
+    ``sin((l + 1/2) omega) / sin(omega / 2) = 1 + 2 sum_{j <= l} cos(j omega)``, ``sum_l w_l kernel_l
+    = S + 2 sum_j W_j cos(j omega)``: one ``cos`` and one ``exp`` of a (..., 9) array (a smaller graph
+    for the compilers)."""
+    ell = _constant(xp, [float(v) for v in range(1, _TERMS + 1)], omega, omega.ndim + 1)
+    w = (2.0 * ell + 1.0) * xp.exp(-(ell * (ell + 1.0)) * eps[..., None])
+    upper = [1.0 if row >= col else 0.0 for row in range(_TERMS) for col in range(_TERMS)]
+    tails = xp.matmul(w, xp.reshape(_constant(xp, upper, omega, 1), (_TERMS, _TERMS)))
+    return ell, tails[..., 0], tails
+
+
 def _log_density_series(xp: Any, omega: Any, eps: Any) -> Any:
-    """``log f`` by the series, for ``eps >= 1/2``: ``log1p`` of its terms ``l >= 1``, with
-    ``sin((l + 1/2) omega) / sin(omega / 2) = 1 + 2 sum_{j=1}^{l} cos(j omega)`` (finite at 0)."""
-    total = 0.0
-    kernel = 1.0
-    for ell in range(1, _TERMS + 1):
-        kernel = kernel + 2.0 * xp.cos(ell * omega)
-        total = total + (2 * ell + 1) * xp.exp(-(ell * (ell + 1)) * eps) * kernel
-    return xp.log1p(total)
+    """``log f`` by the series, for ``eps >= 1/2``: ``log1p`` of its terms ``l >= 1`` (see
+    :func:`_series_tails`; finite at 0)."""
+    ell, total, tails = _series_tails(xp, omega, eps)
+    return xp.log1p(total + 2.0 * xp.sum(tails * xp.cos(ell * omega[..., None]), axis=-1))
 
 
 def _score_dual(xp: Any, omega: Any, gap: Any, eps: Any) -> Any:
@@ -217,21 +228,15 @@ def _score_dual(xp: Any, omega: Any, gap: Any, eps: Any) -> Any:
 
 
 def _score_series(xp: Any, omega: Any, eps: Any) -> Any:
-    """``(d log f / d omega) / omega`` by the series: the kernel ``1 + 2 sum_j cos(j omega)`` has
-    derivative over omega ``-2 sum_j j^2 sin(j omega) / (j omega)``."""
-    total, slope = 0.0, 0.0
-    kernel, kernel_slope = 1.0, 0.0
-    for ell in range(1, _TERMS + 1):
-        t = ell * omega
-        small = xp.abs(t) < 0.01
-        ts = xp.where(small, 1.0, t)
-        sinc = xp.where(small, _polynomial(_SINC, t * t), xp.sin(ts) / ts)
-        kernel = kernel + 2.0 * xp.cos(t)
-        kernel_slope = kernel_slope - (2.0 * ell * ell) * sinc
-        weight = (2 * ell + 1) * xp.exp(-(ell * (ell + 1)) * eps)
-        total = total + weight * kernel
-        slope = slope + weight * kernel_slope
-    return slope / (1.0 + total)
+    """``(d log f / d omega) / omega`` by the series: the kernel's derivative over omega is ``-2 sum_j
+    j^2 sin(j omega) / (j omega)`` (:func:`_series_tails`), ``sin(t) / t`` by its series below 0.01."""
+    ell, total, tails = _series_tails(xp, omega, eps)
+    t = ell * omega[..., None]
+    small = xp.abs(t) < 0.01
+    ts = xp.where(small, 1.0, t)
+    sinc = xp.where(small, _polynomial(_SINC, t * t), xp.sin(ts) / ts)
+    slope = -2.0 * xp.sum(tails * (ell * ell) * sinc, axis=-1)
+    return slope / (1.0 + total + 2.0 * xp.sum(tails * xp.cos(t), axis=-1))
 
 
 def _forms(xp: Any, sigma: Any) -> tuple[Any, Any, Any]:
