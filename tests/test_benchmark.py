@@ -165,3 +165,37 @@ def test_quick_fisher_benchmark_writes_results(tmp_path: Path) -> None:
     row = next(r for r in results["accuracy"] if r["pattern"] == "(s, s, s)" and r["s"] == 100.0)
     assert 0.04 < row["trapezoid float64"] < 0.06
     assert row["diffquat float64"] < 1e-9
+
+
+def test_quick_igso3_benchmark_writes_results(tmp_path: Path) -> None:
+    """``benchmarks.igso3 --quick`` writes its ratio, timing, accuracy and median tables against the
+    lookup table of diffusion codes; the accuracy rows are deterministic: the 1000-term series is off
+    by ~31% at sigma = 0.002 (docs/igso3.md's figure), the table's left cumulative sum puts the median
+    angle at sigma = 0.02 about half a grid step (5%) low, and on the grid the table's log density is
+    within the interpolation's 5e-3 nats in the bulk (1.8e-3 at sigma = 0.1)."""
+    import math
+
+    run_benchmark("igso3", tmp_path)
+    text = (tmp_path / "IGSO3.md").read_text()
+    for fragment in (
+        "## Time per call: table / diffquat",
+        "### log density",
+        "### score",
+        "### sample",
+        "## Accuracy against diffquat float64",
+        "## The sampled angle's median",
+        "| diffquat jax.jit (float32) |",
+        "| table from rotation vectors (np.interp) |",
+    ):
+        assert fragment in text
+    results = json.loads((tmp_path / "igso3.json").read_text())
+    assert all(math.isfinite(c["ratio"]) and c["ratio"] > 0 for c in results["ratios"])
+    rows = {(r["row"], r["sigma"]): r for r in results["accuracy"]}
+    below = rows[("below the grid: a row built at sigma", 0.002)]
+    assert 0.25 < below["series_alone"] < 0.4
+    on_grid = next(r for (label, _), r in rows.items() if label == "on the grid")
+    assert on_grid["log_density_bulk"] < 5e-3 and on_grid["diffquat_float32_log_density_bulk"] < 1e-5
+    median = next(
+        m for m in results["medians"] if m["sigma"] == 0.02 and m["table_row"] == "a row built at sigma"
+    )
+    assert -0.07 < median["table_relative_error"] < -0.03
