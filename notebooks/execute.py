@@ -23,6 +23,7 @@ NOTEBOOKS = (
     "robot_orientation",
     "orientation_on_manifold",
     "probabilistic_pose",
+    "rotation_diffusion",
 )
 
 

@@ -117,7 +117,13 @@ def test_site_builds_with_every_public_name_and_every_link_resolving(site: Path)
                 broken.append(f"{path.relative_to(site)}: {link} (no such anchor)")
     assert not broken, "\n".join(broken)
     # The notebooks are rendered with their figures, the benchmark results with their plots.
-    for name in ("fit_orientation", "pose_regression", "robot_orientation", "probabilistic_pose"):
+    for name in (
+        "fit_orientation",
+        "pose_regression",
+        "robot_orientation",
+        "probabilistic_pose",
+        "rotation_diffusion",
+    ):
         assert "data:image/png;base64" in (site / "notebooks" / name / "index.html").read_text(), name
     assert (site / "benchmarks" / "results.png").exists()
 
