@@ -13,10 +13,21 @@ shape; float16 and bfloat16 computed in float32; wrong shapes and dtypes raise, 
 
 from ._types import EulerConvention as EulerConvention
 from ._types import MeanMethod as MeanMethod
+from ._types import PoseLayout as PoseLayout
 from ._types import Representation as Representation
 from ._types import Rotation6DLayout as Rotation6DLayout
+from ._types import SE3Interpolation as SE3Interpolation
 from ._types import Side as Side
 
 __version__ = "0.1.0"
 
-__all__ = ["EulerConvention", "MeanMethod", "Representation", "Rotation6DLayout", "Side", "__version__"]
+__all__ = [
+    "EulerConvention",
+    "MeanMethod",
+    "PoseLayout",
+    "Representation",
+    "Rotation6DLayout",
+    "SE3Interpolation",
+    "Side",
+    "__version__",
+]

@@ -174,20 +174,21 @@ _B_SERIES = tuple((-1) ** k / math.factorial(2 * k + 3) for k in range(12))
 _C_SERIES = tuple(b / math.factorial(2 * k + 2) for k, b in enumerate(_BERNOULLI))
 
 
-def _truncated(coefficients: tuple[float, ...], eps: float) -> tuple[float, ...]:
-    """The shortest head of a Taylor series in u whose first omitted term at ``u = SERIES_BELOW`` is
-    below a quarter of an ulp (``eps / 4``) of its leading term: float32 takes 5 terms of each series
-    here, float64 8 (t - sin t), 9 (1 - cos t) and 11 (the inverse's). Not cached: a dozen
-    comparisons of Python numbers, and Dynamo warns of ``functools.cache``."""
+def _truncated(coefficients: tuple[float, ...], eps: float, below: float = SERIES_BELOW) -> tuple[float, ...]:
+    """The shortest head of a Taylor series in u whose first omitted term at ``u = below`` (where the
+    series stops being used) is below a quarter of an ulp (``eps / 4``) of its leading term: float32
+    takes 5 terms of each series here, float64 8 (t - sin t), 9 (1 - cos t) and 11 (the inverse's).
+    Not cached: a dozen comparisons of Python numbers, and Dynamo warns of ``functools.cache``."""
     for n in range(2, len(coefficients)):
-        if abs(coefficients[n]) * SERIES_BELOW**n <= 0.25 * eps * abs(coefficients[0]):
+        if abs(coefficients[n]) * below**n <= 0.25 * eps * abs(coefficients[0]):
             return coefficients[:n]
     raise AssertionError("the series tables are too short for this dtype")  # pragma: no cover
 
 
-def _series(xp: Any, u: Any, coefficients: tuple[float, ...]) -> Any:
-    """Horner's evaluation of the series at ``u``, truncated for ``u``'s dtype (:func:`_truncated`)."""
-    terms = _truncated(coefficients, float(xp.finfo(u.dtype).eps))
+def _series(xp: Any, u: Any, coefficients: tuple[float, ...], below: float = SERIES_BELOW) -> Any:
+    """Horner's evaluation of the series at ``u < below``, truncated for ``u``'s dtype
+    (:func:`_truncated`)."""
+    terms = _truncated(coefficients, float(xp.finfo(u.dtype).eps), below)
     out = terms[-1] * u + terms[-2]
     for c in terms[-3::-1]:
         out = out * u + c

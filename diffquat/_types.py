@@ -40,3 +40,13 @@ MeanMethod: TypeAlias = Literal["chordal", "geodesic", "geodesic_l1"]
 """How a rotation average is taken: ``"chordal"`` (the rotation nearest to the arithmetic mean of the
 matrices, scipy's ``Rotation.mean``), ``"geodesic"`` (the Karcher mean), ``"geodesic_l1"`` (the
 geodesic median)."""
+
+SE3Interpolation: TypeAlias = Literal["screw", "decoupled"]
+"""How ``se3_interpolate`` moves between two poses: ``"screw"``, the constant twist
+``T1 exp(t log(T1^-1 T2))`` (scipy's ``RigidTransform`` power), or ``"decoupled"``, slerp of the
+rotations and a straight line of the translations."""
+
+PoseLayout: TypeAlias = Literal["wxyz_xyz", "xyz_xyzw", "xyzw_xyz", "xyz_wxyz"]
+"""The order of a 7-vector pose, a quaternion and a translation: ``"wxyz_xyz"`` (jaxlie, kornia),
+``"xyz_xyzw"`` (ROS ``geometry_msgs/Pose``, pypose, lietorch, manif), ``"xyzw_xyz"`` (Sophus),
+``"xyz_wxyz"`` (theseus)."""

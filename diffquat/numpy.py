@@ -8,13 +8,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from . import _algebra, _core, _euler, _igso3, _lie
+from . import _algebra, _core, _euler, _igso3, _lie, _se3
 from . import _fisher as _fi
 from . import _representations as _rep
 from . import _statistics as _stats
 from ._backend import Backend, documented, shape_tuple
 from ._public import public_dir as _public_dir
-from ._types import EulerConvention, MeanMethod, Rotation6DLayout, Side
+from ._types import EulerConvention, MeanMethod, PoseLayout, Rotation6DLayout, SE3Interpolation, Side
 
 __all__ = [
     "axis_angle_to_matrix",
@@ -22,7 +22,10 @@ __all__ = [
     "bingham_nll",
     "euler_angles_to_matrix",
     "euler_angles_to_quaternion",
+    "fit_rigid_transform",
     "fit_rotation",
+    "fit_similarity_transform",
+    "frame_from_three_points",
     "igso3_angle_cdf",
     "igso3_log_density",
     "igso3_sample",
@@ -34,9 +37,11 @@ __all__ = [
     "matrix_geodesic_distance",
     "matrix_to_axis_angle",
     "matrix_to_euler_angles",
+    "matrix_to_pose",
     "matrix_to_quaternion",
     "matrix_to_rotation_6d",
     "normalize_quaternion",
+    "pose_to_matrix",
     "quaternion_apply",
     "quaternion_conjugate",
     "quaternion_geodesic_distance",
@@ -51,7 +56,27 @@ __all__ = [
     "quaternion_to_matrix",
     "random_quaternions",
     "rotation_6d_to_matrix",
+    "rotation_between_vectors",
     "rotation_mean",
+    "se3_ad",
+    "se3_adjoint",
+    "se3_apply",
+    "se3_compose",
+    "se3_exp",
+    "se3_from_rotation_translation",
+    "se3_hat",
+    "se3_interpolate",
+    "se3_inverse",
+    "se3_left_jacobian",
+    "se3_left_jacobian_inverse",
+    "se3_log",
+    "se3_mean",
+    "se3_minus",
+    "se3_plus",
+    "se3_right_jacobian",
+    "se3_right_jacobian_inverse",
+    "se3_to_rotation_translation",
+    "se3_vee",
     "so3_exp",
     "so3_hat",
     "so3_left_jacobian",
@@ -473,3 +498,145 @@ def symmetry_group(name: str, *, dtype: Any = np.float64) -> NDArray[Any]:
 symmetry_group.__doc__ = _stats.SYMMETRY_GROUP_DOC.format(
     keywords="        dtype: floating dtype of the result (default float64).\n"
 )
+
+
+# SE(3): poses as 4x4 matrices, their Lie calculus and interpolation (diffquat._se3).
+
+
+@documented(_se3.se3_from_rotation_translation)
+def se3_from_rotation_translation(rotation: ArrayLike, translation: ArrayLike) -> NDArray[Any]:
+    return _B(_se3.se3_from_rotation_translation, rotation, translation)
+
+
+@documented(_se3.se3_to_rotation_translation)
+def se3_to_rotation_translation(matrix: ArrayLike) -> tuple[NDArray[Any], NDArray[Any]]:
+    top = _B(_se3.se3_to_rotation_translation, matrix)
+    return top[..., :3], top[..., 3]
+
+
+@documented(_se3.se3_compose)
+def se3_compose(matrix1: ArrayLike, matrix2: ArrayLike) -> NDArray[Any]:
+    return _B(_se3.se3_compose, matrix1, matrix2)
+
+
+@documented(_se3.se3_inverse)
+def se3_inverse(matrix: ArrayLike) -> NDArray[Any]:
+    return _B(_se3.se3_inverse, matrix)
+
+
+@documented(_se3.se3_apply)
+def se3_apply(matrix: ArrayLike, points: ArrayLike) -> NDArray[Any]:
+    return _B(_se3.se3_apply, matrix, points)
+
+
+@documented(_se3.se3_hat)
+def se3_hat(xi: ArrayLike) -> NDArray[Any]:
+    return _B(_se3.se3_hat, xi)
+
+
+@documented(_se3.se3_vee)
+def se3_vee(matrix: ArrayLike) -> NDArray[Any]:
+    return _B(_se3.se3_vee, matrix)
+
+
+@documented(_se3.se3_exp)
+def se3_exp(xi: ArrayLike) -> NDArray[Any]:
+    return _B(_se3.se3_exp, xi)
+
+
+@documented(_se3.se3_log)
+def se3_log(matrix: ArrayLike) -> NDArray[Any]:
+    return _B(_se3.se3_log, matrix, to_quaternion=_M2Q)
+
+
+@documented(_se3.se3_adjoint)
+def se3_adjoint(matrix: ArrayLike) -> NDArray[Any]:
+    return _B(_se3.se3_adjoint, matrix)
+
+
+@documented(_se3.se3_ad)
+def se3_ad(xi: ArrayLike) -> NDArray[Any]:
+    return _B(_se3.se3_ad, xi)
+
+
+@documented(_se3.se3_left_jacobian)
+def se3_left_jacobian(xi: ArrayLike) -> NDArray[Any]:
+    return _B(_se3.se3_left_jacobian, xi)
+
+
+@documented(_se3.se3_right_jacobian)
+def se3_right_jacobian(xi: ArrayLike) -> NDArray[Any]:
+    return _B(_se3.se3_right_jacobian, xi)
+
+
+@documented(_se3.se3_left_jacobian_inverse)
+def se3_left_jacobian_inverse(xi: ArrayLike) -> NDArray[Any]:
+    return _B(_se3.se3_left_jacobian_inverse, xi)
+
+
+@documented(_se3.se3_right_jacobian_inverse)
+def se3_right_jacobian_inverse(xi: ArrayLike) -> NDArray[Any]:
+    return _B(_se3.se3_right_jacobian_inverse, xi)
+
+
+@documented(_se3.se3_plus)
+def se3_plus(matrix: ArrayLike, delta: ArrayLike, *, side: Side = "right") -> NDArray[Any]:
+    return _B(_se3.se3_plus, matrix, delta, side=side)
+
+
+@documented(_se3.se3_minus)
+def se3_minus(matrix1: ArrayLike, matrix2: ArrayLike, *, side: Side = "right") -> NDArray[Any]:
+    return _B(_se3.se3_minus, matrix1, matrix2, side=side, to_quaternion=_M2Q)
+
+
+@documented(_se3.se3_interpolate)
+def se3_interpolate(
+    matrix1: ArrayLike, matrix2: ArrayLike, t: ArrayLike, *, mode: SE3Interpolation = "screw"
+) -> NDArray[Any]:
+    return _B(_se3.se3_interpolate, matrix1, matrix2, t, mode=mode, to_quaternion=_M2Q)
+
+
+@documented(_se3.pose_to_matrix)
+def pose_to_matrix(pose: ArrayLike, *, layout: PoseLayout) -> NDArray[Any]:
+    return _B(_se3.pose_to_matrix, pose, layout=layout, to_matrix=_Q2M)
+
+
+@documented(_se3.matrix_to_pose)
+def matrix_to_pose(matrix: ArrayLike, *, layout: PoseLayout) -> NDArray[Any]:
+    return _B(_se3.matrix_to_pose, matrix, layout=layout, to_quaternion=_M2Q)
+
+
+@documented(_se3.se3_mean)
+def se3_mean(matrices: ArrayLike, weights: ArrayLike | None = None) -> NDArray[Any]:
+    return _B(
+        _se3.se3_mean,
+        matrices,
+        weights,
+        rotation_mean=_stats.rotation_mean,
+        procrustes=_rep.special_procrustes,
+    )
+
+
+@documented(_se3.fit_rigid_transform)
+def fit_rigid_transform(
+    source: ArrayLike, target: ArrayLike, weights: ArrayLike | None = None
+) -> NDArray[Any]:
+    return _B(_se3.fit_rigid_transform, source, target, weights, procrustes=_rep.special_procrustes)
+
+
+@documented(_se3.fit_similarity_transform)
+def fit_similarity_transform(
+    source: ArrayLike, target: ArrayLike, weights: ArrayLike | None = None
+) -> tuple[NDArray[Any], NDArray[Any]]:
+    packed = _B(_se3.fit_similarity_transform, source, target, weights, procrustes=_rep.special_procrustes)
+    return _se3.split_similarity(_B.xp, packed)
+
+
+@documented(_se3.rotation_between_vectors)
+def rotation_between_vectors(a: ArrayLike, b: ArrayLike) -> NDArray[Any]:
+    return _B(_se3.rotation_between_vectors, a, b)
+
+
+@documented(_se3.frame_from_three_points)
+def frame_from_three_points(x1: ArrayLike, x2: ArrayLike, x3: ArrayLike) -> NDArray[Any]:
+    return _B(_se3.frame_from_three_points, x1, x2, x3)

@@ -72,7 +72,7 @@ def test_every_public_function_is_in_the_test_table() -> None:
     exported = set(public("numpy"))
     assert exported == {op.name for op in OPS} | set(NOT_IN_TABLE)
     # a variant names its base row: a row of the same function, or of the function whose map it is
-    # under another name, which then gives the same values on the variant's inputs
+    # under another name (on inputs mapped by ``variant_inputs``), which then gives the same values
     variants = [op for op in OPS if op.variant_of]
     assert variants
     for op in variants:
@@ -80,7 +80,8 @@ def test_every_public_function_is_in_the_test_table() -> None:
         if base.name != op.name:
             xs = op.inputs(CASES_BY_NAME["random"].quaternions("float64"))
             np.testing.assert_array_equal(
-                getattr(dqn, op.name)(*xs, **op.kwargs), getattr(dqn, base.name)(*xs, **op.kwargs)
+                getattr(dqn, op.name)(*xs, **op.kwargs),
+                getattr(dqn, base.name)(*op.variant_inputs(*xs), **op.kwargs),
             )
 
 
@@ -283,6 +284,12 @@ OPTION_TYPES = {
     "layout": _types.Rotation6DLayout,
     "side": _types.Side,
     "method": _types.MeanMethod,
+    "mode": _types.SE3Interpolation,
+}
+# Where one parameter name carries another option: the 7-vector pose layouts.
+OWN_OPTION_TYPES = {
+    ("pose_to_matrix", "layout"): _types.PoseLayout,
+    ("matrix_to_pose", "layout"): _types.PoseLayout,
 }
 
 
@@ -301,7 +308,8 @@ def test_string_options_are_typed_by_their_literal_alias() -> None:
                 continue
             hints = typing.get_type_hints(fn)
             for p in set(params) & set(OPTION_TYPES):
-                assert hints[p] == OPTION_TYPES[p], (module.__name__, name, p)
+                expected = OWN_OPTION_TYPES.get((name, p), OPTION_TYPES[p])
+                assert hints[p] == expected, (module.__name__, name, p)
                 checked += 1
     assert checked >= 3 * 6 + 2 * 3  # the Euler and 6D functions of three backends, and the heads
 
@@ -322,6 +330,10 @@ def test_literal_aliases_list_exactly_what_the_functions_accept() -> None:
     assert typing.get_args(_types.Representation) == tuple(_heads.REPRESENTATIONS)
     for layout in typing.get_args(_types.Rotation6DLayout):
         _layout_axis("f", layout)
+    from diffquat._se3 import INTERPOLATION_MODES, POSE_LAYOUTS
+
+    assert typing.get_args(_types.PoseLayout) == tuple(POSE_LAYOUTS)
+    assert typing.get_args(_types.SE3Interpolation) == INTERPOLATION_MODES
     import diffquat
 
     assert diffquat.EulerConvention is _types.EulerConvention

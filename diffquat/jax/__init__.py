@@ -14,13 +14,13 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
-from .. import _algebra, _core, _euler, _igso3, _lie
+from .. import _algebra, _core, _euler, _igso3, _lie, _se3
 from .. import _fisher as _fi
 from .. import _representations as _rep
 from .. import _statistics as _stats
 from .._backend import Backend, documented, shape_tuple
 from .._public import public_dir as _public_dir
-from .._types import EulerConvention, MeanMethod, Rotation6DLayout, Side
+from .._types import EulerConvention, MeanMethod, PoseLayout, Rotation6DLayout, SE3Interpolation, Side
 from ._custom import custom_derivative
 from ._namespace import XP
 
@@ -30,7 +30,10 @@ __all__ = [
     "bingham_nll",
     "euler_angles_to_matrix",
     "euler_angles_to_quaternion",
+    "fit_rigid_transform",
     "fit_rotation",
+    "fit_similarity_transform",
+    "frame_from_three_points",
     "igso3_angle_cdf",
     "igso3_log_density",
     "igso3_sample",
@@ -42,9 +45,11 @@ __all__ = [
     "matrix_geodesic_distance",
     "matrix_to_axis_angle",
     "matrix_to_euler_angles",
+    "matrix_to_pose",
     "matrix_to_quaternion",
     "matrix_to_rotation_6d",
     "normalize_quaternion",
+    "pose_to_matrix",
     "quaternion_apply",
     "quaternion_conjugate",
     "quaternion_geodesic_distance",
@@ -59,7 +64,27 @@ __all__ = [
     "quaternion_to_matrix",
     "random_quaternions",
     "rotation_6d_to_matrix",
+    "rotation_between_vectors",
     "rotation_mean",
+    "se3_ad",
+    "se3_adjoint",
+    "se3_apply",
+    "se3_compose",
+    "se3_exp",
+    "se3_from_rotation_translation",
+    "se3_hat",
+    "se3_interpolate",
+    "se3_inverse",
+    "se3_left_jacobian",
+    "se3_left_jacobian_inverse",
+    "se3_log",
+    "se3_mean",
+    "se3_minus",
+    "se3_plus",
+    "se3_right_jacobian",
+    "se3_right_jacobian_inverse",
+    "se3_to_rotation_translation",
+    "se3_vee",
     "so3_exp",
     "so3_hat",
     "so3_left_jacobian",
@@ -525,3 +550,137 @@ def symmetry_group(name: str, *, dtype: Any = None) -> Array:
 symmetry_group.__doc__ = _stats.SYMMETRY_GROUP_DOC.format(
     keywords="        dtype: floating dtype of the result (default float64 where x64 is on, else float32).\n"
 )
+
+
+# SE(3): poses as 4x4 matrices, their Lie calculus and interpolation (diffquat._se3).
+
+
+@documented(_se3.se3_from_rotation_translation)
+def se3_from_rotation_translation(rotation: ArrayLike, translation: ArrayLike) -> Array:
+    return _B(_se3.se3_from_rotation_translation, rotation, translation)
+
+
+@documented(_se3.se3_to_rotation_translation)
+def se3_to_rotation_translation(matrix: ArrayLike) -> tuple[Array, Array]:
+    top = _B(_se3.se3_to_rotation_translation, matrix)
+    return top[..., :3], top[..., 3]
+
+
+@documented(_se3.se3_compose)
+def se3_compose(matrix1: ArrayLike, matrix2: ArrayLike) -> Array:
+    return _B(_se3.se3_compose, matrix1, matrix2)
+
+
+@documented(_se3.se3_inverse)
+def se3_inverse(matrix: ArrayLike) -> Array:
+    return _B(_se3.se3_inverse, matrix)
+
+
+@documented(_se3.se3_apply)
+def se3_apply(matrix: ArrayLike, points: ArrayLike) -> Array:
+    return _B(_se3.se3_apply, matrix, points)
+
+
+@documented(_se3.se3_hat)
+def se3_hat(xi: ArrayLike) -> Array:
+    return _B(_se3.se3_hat, xi)
+
+
+@documented(_se3.se3_vee)
+def se3_vee(matrix: ArrayLike) -> Array:
+    return _B(_se3.se3_vee, matrix)
+
+
+@documented(_se3.se3_exp)
+def se3_exp(xi: ArrayLike) -> Array:
+    return _B(_se3.se3_exp, xi)
+
+
+@documented(_se3.se3_log)
+def se3_log(matrix: ArrayLike) -> Array:
+    return _B(_se3.se3_log, matrix, to_quaternion=_M2Q)
+
+
+@documented(_se3.se3_adjoint)
+def se3_adjoint(matrix: ArrayLike) -> Array:
+    return _B(_se3.se3_adjoint, matrix)
+
+
+@documented(_se3.se3_ad)
+def se3_ad(xi: ArrayLike) -> Array:
+    return _B(_se3.se3_ad, xi)
+
+
+@documented(_se3.se3_left_jacobian)
+def se3_left_jacobian(xi: ArrayLike) -> Array:
+    return _B(_se3.se3_left_jacobian, xi)
+
+
+@documented(_se3.se3_right_jacobian)
+def se3_right_jacobian(xi: ArrayLike) -> Array:
+    return _B(_se3.se3_right_jacobian, xi)
+
+
+@documented(_se3.se3_left_jacobian_inverse)
+def se3_left_jacobian_inverse(xi: ArrayLike) -> Array:
+    return _B(_se3.se3_left_jacobian_inverse, xi)
+
+
+@documented(_se3.se3_right_jacobian_inverse)
+def se3_right_jacobian_inverse(xi: ArrayLike) -> Array:
+    return _B(_se3.se3_right_jacobian_inverse, xi)
+
+
+@documented(_se3.se3_plus)
+def se3_plus(matrix: ArrayLike, delta: ArrayLike, *, side: Side = "right") -> Array:
+    return _B(_se3.se3_plus, matrix, delta, side=side)
+
+
+@documented(_se3.se3_minus)
+def se3_minus(matrix1: ArrayLike, matrix2: ArrayLike, *, side: Side = "right") -> Array:
+    return _B(_se3.se3_minus, matrix1, matrix2, side=side, to_quaternion=_M2Q)
+
+
+@documented(_se3.se3_interpolate)
+def se3_interpolate(
+    matrix1: ArrayLike, matrix2: ArrayLike, t: ArrayLike, *, mode: SE3Interpolation = "screw"
+) -> Array:
+    return _B(_se3.se3_interpolate, matrix1, matrix2, t, mode=mode, to_quaternion=_M2Q)
+
+
+@documented(_se3.pose_to_matrix)
+def pose_to_matrix(pose: ArrayLike, *, layout: PoseLayout) -> Array:
+    return _B(_se3.pose_to_matrix, pose, layout=layout, to_matrix=_Q2M)
+
+
+@documented(_se3.matrix_to_pose)
+def matrix_to_pose(matrix: ArrayLike, *, layout: PoseLayout) -> Array:
+    return _B(_se3.matrix_to_pose, matrix, layout=layout, to_quaternion=_M2Q)
+
+
+@documented(_se3.se3_mean)
+def se3_mean(matrices: ArrayLike, weights: ArrayLike | None = None) -> Array:
+    return _B(_se3.se3_mean, matrices, weights, rotation_mean=_rotation_mean, procrustes=_special_procrustes)
+
+
+@documented(_se3.fit_rigid_transform)
+def fit_rigid_transform(source: ArrayLike, target: ArrayLike, weights: ArrayLike | None = None) -> Array:
+    return _B(_se3.fit_rigid_transform, source, target, weights, procrustes=_special_procrustes)
+
+
+@documented(_se3.fit_similarity_transform)
+def fit_similarity_transform(
+    source: ArrayLike, target: ArrayLike, weights: ArrayLike | None = None
+) -> tuple[Array, Array]:
+    packed = _B(_se3.fit_similarity_transform, source, target, weights, procrustes=_special_procrustes)
+    return _se3.split_similarity(_B.xp, packed)
+
+
+@documented(_se3.rotation_between_vectors)
+def rotation_between_vectors(a: ArrayLike, b: ArrayLike) -> Array:
+    return _B(_se3.rotation_between_vectors, a, b)
+
+
+@documented(_se3.frame_from_three_points)
+def frame_from_three_points(x1: ArrayLike, x2: ArrayLike, x3: ArrayLike) -> Array:
+    return _B(_se3.frame_from_three_points, x1, x2, x3)

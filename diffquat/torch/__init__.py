@@ -12,13 +12,13 @@ import torch
 from torch import Tensor
 from torch.jit._trace import TracerWarning, is_tracing
 
-from .. import _algebra, _core, _euler, _igso3, _lie
+from .. import _algebra, _core, _euler, _igso3, _lie, _se3
 from .. import _fisher as _fi
 from .. import _representations as _rep
 from .. import _statistics as _stats
 from .._backend import Backend, documented, shape_tuple
 from .._public import public_dir as _public_dir
-from .._types import EulerConvention, MeanMethod, Rotation6DLayout, Side
+from .._types import EulerConvention, MeanMethod, PoseLayout, Rotation6DLayout, SE3Interpolation, Side
 from ._custom import custom_derivative, refuse_onnx
 
 __all__ = [
@@ -27,7 +27,10 @@ __all__ = [
     "bingham_nll",
     "euler_angles_to_matrix",
     "euler_angles_to_quaternion",
+    "fit_rigid_transform",
     "fit_rotation",
+    "fit_similarity_transform",
+    "frame_from_three_points",
     "igso3_angle_cdf",
     "igso3_log_density",
     "igso3_sample",
@@ -39,9 +42,11 @@ __all__ = [
     "matrix_geodesic_distance",
     "matrix_to_axis_angle",
     "matrix_to_euler_angles",
+    "matrix_to_pose",
     "matrix_to_quaternion",
     "matrix_to_rotation_6d",
     "normalize_quaternion",
+    "pose_to_matrix",
     "quaternion_apply",
     "quaternion_conjugate",
     "quaternion_geodesic_distance",
@@ -56,7 +61,27 @@ __all__ = [
     "quaternion_to_matrix",
     "random_quaternions",
     "rotation_6d_to_matrix",
+    "rotation_between_vectors",
     "rotation_mean",
+    "se3_ad",
+    "se3_adjoint",
+    "se3_apply",
+    "se3_compose",
+    "se3_exp",
+    "se3_from_rotation_translation",
+    "se3_hat",
+    "se3_interpolate",
+    "se3_inverse",
+    "se3_left_jacobian",
+    "se3_left_jacobian_inverse",
+    "se3_log",
+    "se3_mean",
+    "se3_minus",
+    "se3_plus",
+    "se3_right_jacobian",
+    "se3_right_jacobian_inverse",
+    "se3_to_rotation_translation",
+    "se3_vee",
     "so3_exp",
     "so3_hat",
     "so3_left_jacobian",
@@ -570,3 +595,142 @@ symmetry_group.__doc__ = _stats.SYMMETRY_GROUP_DOC.format(
 # records each public function as one call instead (a leaf), which runs it when the graph runs.
 for _name in __all__:
     torch.fx.wrap(_name)
+
+
+# SE(3): poses as 4x4 matrices, their Lie calculus and interpolation (diffquat._se3).
+
+
+@documented(_se3.se3_from_rotation_translation)
+def se3_from_rotation_translation(rotation: Tensor, translation: Tensor) -> Tensor:
+    return _B(_se3.se3_from_rotation_translation, rotation, translation)
+
+
+@documented(_se3.se3_to_rotation_translation)
+def se3_to_rotation_translation(matrix: Tensor) -> tuple[Tensor, Tensor]:
+    top = _B(_se3.se3_to_rotation_translation, matrix)
+    return top[..., :3], top[..., 3]
+
+
+@documented(_se3.se3_compose)
+def se3_compose(matrix1: Tensor, matrix2: Tensor) -> Tensor:
+    return _B(_se3.se3_compose, matrix1, matrix2)
+
+
+@documented(_se3.se3_inverse)
+def se3_inverse(matrix: Tensor) -> Tensor:
+    return _B(_se3.se3_inverse, matrix)
+
+
+@documented(_se3.se3_apply)
+def se3_apply(matrix: Tensor, points: Tensor) -> Tensor:
+    return _B(_se3.se3_apply, matrix, points)
+
+
+@documented(_se3.se3_hat)
+def se3_hat(xi: Tensor) -> Tensor:
+    return _B(_se3.se3_hat, xi)
+
+
+@documented(_se3.se3_vee)
+def se3_vee(matrix: Tensor) -> Tensor:
+    return _B(_se3.se3_vee, matrix)
+
+
+@documented(_se3.se3_exp)
+def se3_exp(xi: Tensor) -> Tensor:
+    return _B(_se3.se3_exp, xi)
+
+
+@documented(_se3.se3_log)
+def se3_log(matrix: Tensor) -> Tensor:
+    return _B(_se3.se3_log, matrix, to_quaternion=_M2Q)
+
+
+@documented(_se3.se3_adjoint)
+def se3_adjoint(matrix: Tensor) -> Tensor:
+    return _B(_se3.se3_adjoint, matrix)
+
+
+@documented(_se3.se3_ad)
+def se3_ad(xi: Tensor) -> Tensor:
+    return _B(_se3.se3_ad, xi)
+
+
+@documented(_se3.se3_left_jacobian)
+def se3_left_jacobian(xi: Tensor) -> Tensor:
+    return _B(_se3.se3_left_jacobian, xi)
+
+
+@documented(_se3.se3_right_jacobian)
+def se3_right_jacobian(xi: Tensor) -> Tensor:
+    return _B(_se3.se3_right_jacobian, xi)
+
+
+@documented(_se3.se3_left_jacobian_inverse)
+def se3_left_jacobian_inverse(xi: Tensor) -> Tensor:
+    return _B(_se3.se3_left_jacobian_inverse, xi)
+
+
+@documented(_se3.se3_right_jacobian_inverse)
+def se3_right_jacobian_inverse(xi: Tensor) -> Tensor:
+    return _B(_se3.se3_right_jacobian_inverse, xi)
+
+
+@documented(_se3.se3_plus)
+def se3_plus(matrix: Tensor, delta: Tensor, *, side: Side = "right") -> Tensor:
+    return _B(_se3.se3_plus, matrix, delta, side=side)
+
+
+@documented(_se3.se3_minus)
+def se3_minus(matrix1: Tensor, matrix2: Tensor, *, side: Side = "right") -> Tensor:
+    return _B(_se3.se3_minus, matrix1, matrix2, side=side, to_quaternion=_M2Q)
+
+
+@documented(_se3.se3_interpolate)
+def se3_interpolate(
+    matrix1: Tensor, matrix2: Tensor, t: Tensor | float, *, mode: SE3Interpolation = "screw"
+) -> Tensor:
+    return _B(_se3.se3_interpolate, matrix1, matrix2, t, mode=mode, to_quaternion=_M2Q)
+
+
+@documented(_se3.pose_to_matrix)
+def pose_to_matrix(pose: Tensor, *, layout: PoseLayout) -> Tensor:
+    return _B(_se3.pose_to_matrix, pose, layout=layout, to_matrix=_Q2M)
+
+
+@documented(_se3.matrix_to_pose)
+def matrix_to_pose(matrix: Tensor, *, layout: PoseLayout) -> Tensor:
+    return _B(_se3.matrix_to_pose, matrix, layout=layout, to_quaternion=_M2Q)
+
+
+@documented(_se3.se3_mean)
+def se3_mean(matrices: Tensor, weights: Tensor | None = None) -> Tensor:
+    refuse_onnx("se3_mean", "a mean of poses")
+    return _B(
+        _se3.se3_mean, matrices, weights, rotation_mean=_stats.rotation_mean, procrustes=_special_procrustes
+    )
+
+
+@documented(_se3.fit_rigid_transform)
+def fit_rigid_transform(source: Tensor, target: Tensor, weights: Tensor | None = None) -> Tensor:
+    refuse_onnx("fit_rigid_transform", "the least-squares pose")
+    return _B(_se3.fit_rigid_transform, source, target, weights, procrustes=_special_procrustes)
+
+
+@documented(_se3.fit_similarity_transform)
+def fit_similarity_transform(
+    source: Tensor, target: Tensor, weights: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
+    refuse_onnx("fit_similarity_transform", "the least-squares similarity")
+    packed = _B(_se3.fit_similarity_transform, source, target, weights, procrustes=_special_procrustes)
+    return _se3.split_similarity(_B.xp, packed)
+
+
+@documented(_se3.rotation_between_vectors)
+def rotation_between_vectors(a: Tensor, b: Tensor) -> Tensor:
+    return _B(_se3.rotation_between_vectors, a, b)
+
+
+@documented(_se3.frame_from_three_points)
+def frame_from_three_points(x1: Tensor, x2: Tensor, x3: Tensor) -> Tensor:
+    return _B(_se3.frame_from_three_points, x1, x2, x3)
