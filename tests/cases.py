@@ -886,13 +886,18 @@ def oracle_left_jacobian(v: np.ndarray) -> np.ndarray:
     (e^pi - 1) / pi ~ 7, bounds the rounding by ~1e-15 (scipy's expm of the block matrix
     [[hat(v), I], [0, 0]] agrees; it took seconds a call, a Pade step per matrix)."""
     flat, batch = _flat(v, 1)
-    h = hat(flat)
-    power = np.broadcast_to(np.eye(3), h.shape).copy()
+    return phi_series(hat(flat), 40).reshape((*batch, 3, 3))
+
+
+def phi_series(a: np.ndarray, terms: int) -> np.ndarray:
+    """sum_{n <= terms} a^n / (n + 1)! of square matrices ``a`` (..., k, k), in float64 powers: the
+    Jacobian of the exponential of the Lie algebra element whose adjoint (or hat) is ``a``."""
+    power = np.broadcast_to(np.eye(a.shape[-1]), a.shape).copy()
     out = power.copy()
-    for k in range(1, 41):
-        power = power @ h / (k + 1)
+    for k in range(1, terms + 1):
+        power = power @ a / (k + 1)
         out = out + power
-    return out.reshape((*batch, 3, 3))
+    return out
 
 
 def oracle_right_jacobian(v: np.ndarray) -> np.ndarray:
@@ -1063,6 +1068,10 @@ def _pose(q: np.ndarray, seed: int = 22) -> np.ndarray:
     return se3_matrix(oracle_quaternion_to_matrix(q), _translation(q, seed))
 
 
+def _xyz_xyzw(t: np.ndarray, q: np.ndarray) -> tuple[np.ndarray]:
+    return (np.concatenate([t, q[..., 1:], q[..., :1]], axis=-1),)
+
+
 def wxyz_to_xyzw_of(q: np.ndarray) -> np.ndarray:
     return np.concatenate([q[..., 1:], q[..., :1]], axis=-1)
 
@@ -1092,13 +1101,7 @@ def oracle_se3_left_jacobian(xi: np.ndarray) -> np.ndarray:
     |rho| < 6 here, where the terms fall below 6^60 / 61! ~ 1e-37 and their sizes sum to < e^6 / 6,
     which bounds the rounding by ~1e-14)."""
     flat, batch = _flat(xi, 1)
-    a = se3_ad_of(flat)
-    power = np.broadcast_to(np.eye(6), a.shape).copy()
-    out = power.copy()
-    for k in range(1, 61):
-        power = power @ a / (k + 1)
-        out = out + power
-    return out.reshape((*batch, 6, 6))
+    return phi_series(se3_ad_of(flat), 60).reshape((*batch, 6, 6))
 
 
 def oracle_se3_log(matrix: np.ndarray) -> np.ndarray:
@@ -1214,13 +1217,16 @@ def _se3_ops() -> list[Op]:
         # orders themselves are checked in tests/test_se3.py.
         poses(
             "pose_to_matrix",
-            lambda q: (np.concatenate([_translation(q, 22), q[..., 1:], q[..., :1]], axis=-1),),
+            lambda q: _xyz_xyzw(_translation(q, 22), q),
             lambda pose: se3_matrix(
                 oracle_quaternion_to_matrix(np.concatenate([pose[..., 6:], pose[..., 3:6]], -1)),
                 pose[..., :3],
             ),
             kwargs={"layout": "xyz_xyzw"},
             label="pose_to_matrix[xyz_xyzw]",
+            # derivatives at unit norm: at the norms case's 1e-30 they scale as 1 / |q|, beyond what
+            # finite differences resolve beside the translation (the values cover every norm)
+            grad_inputs=lambda q: _xyz_xyzw(_translation(q, 22), oracle_normalize(q)),
         ),
         poses(
             "matrix_to_pose",
