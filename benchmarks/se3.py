@@ -57,6 +57,7 @@ import numpy as np
 from .run import FULL_SIZES, _fmt_time, _sync, machine, time_all, unit_quaternions
 
 QUICK_SIZES = (64,)
+DEFAULT_REPEATS = {True: 2, False: 7}  # rotated blocks per cell, by --quick
 OPS = (
     "se3_exp",
     "se3_log",
@@ -1052,6 +1053,20 @@ def _theta(t: float) -> str:
     return "pi - 1e-6" if abs(t - (math.pi - 1e-6)) < 1e-12 else f"{t:g}"
 
 
+def command(results: dict[str, Any]) -> str:
+    """The command line that wrote the results."""
+    words = ["python -m benchmarks.se3"] + (["--quick"] if results["quick"] else [])
+    if results["torch_threads"] != 1:
+        words.append(f"--threads {results['torch_threads']}")
+    if tuple(results["ops"]) != OPS:
+        words.append("--ops " + ",".join(results["ops"]))
+    if tuple(results["sizes"]) != (QUICK_SIZES if results["quick"] else FULL_SIZES):
+        words.append("--sizes " + ",".join(str(n) for n in results["sizes"]))
+    if results["repeats"] != DEFAULT_REPEATS[results["quick"]]:
+        words.append(f"--repeats {results['repeats']}")
+    return " ".join(words)
+
+
 def render(results: dict[str, Any]) -> str:
     load = results["load"]
     sizes = results["sizes"]
@@ -1059,11 +1074,10 @@ def render(results: dict[str, Any]) -> str:
     lines = [
         "# SE(3): diffquat against its peers",
         "",
-        f"Written by `python -m benchmarks.se3{' --quick' if results['quick'] else ''}"
-        f"{' --threads ' + str(results['torch_threads']) if results['torch_threads'] != 1 else ''}`; do not "
-        "edit by hand. What is timed, the layouts and the accuracy reference are in the module's docstring "
-        "(`benchmarks/se3.py`) and below. float32 (numpy and scipy: float64), CPU, torch with "
-        f"{results['torch_threads']} thread(s).",
+        f"Written by `{command(results)}`; do not edit by hand. What is timed, the layouts and the "
+        "accuracy reference are in the module's docstring (`benchmarks/se3.py`) and below. float32 (numpy "
+        f"and scipy: float64), CPU, torch with {results['torch_threads']} thread(s)"
+        + ("; `--quick` leaves out the `torch.compile` path." if results["quick"] else "."),
         "",
         f"Run time {results['seconds']:.0f} s; load average (1, 5, 15 min) before "
         f"{tuple(round(x, 2) for x in load['before'])}, after {tuple(round(x, 2) for x in load['after'])}: "
@@ -1252,7 +1266,7 @@ def run(
     import torch
 
     sizes = sizes or (QUICK_SIZES if quick else FULL_SIZES)
-    repeats = repeats or (2 if quick else 7)
+    repeats = repeats or DEFAULT_REPEATS[quick]
     block_s = 0.002 if quick else 0.03
     started = time.time()
     load_before = os.getloadavg()

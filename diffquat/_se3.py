@@ -136,8 +136,8 @@ def se3_to_rotation_translation(xp: Any, matrix: Any) -> Any:
         matrix: poses, shape ``(..., 4, 4)`` (the bottom row is not read).
 
     Returns:
-        ``(rotation, translation)``, shapes ``(..., 3, 3)`` and ``(..., 3)``, views of ``T``'s entries
-        where the framework makes views. A NaN or an infinity anywhere in a pose makes both NaN.
+        ``(rotation, translation)``, shapes ``(..., 3, 3)`` and ``(..., 3)``: ``T``'s entries. A NaN or
+        an infinity anywhere in a pose makes both NaN.
     """
     # The core gives the top rows [R | t] as one array, so that the backends' rule for non-finite rows
     # applies to both parts at once; each backend's wrapper splits it.

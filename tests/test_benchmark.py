@@ -199,3 +199,51 @@ def test_quick_igso3_benchmark_writes_results(tmp_path: Path) -> None:
         m for m in results["medians"] if m["sigma"] == 0.02 and m["table_row"] == "a row built at sigma"
     )
     assert -0.07 < median["table_relative_error"] < -0.03
+
+
+def test_quick_se3_benchmark_writes_results(tmp_path: Path) -> None:
+    """``benchmarks.se3 --quick`` writes its ratio tables (peer time / diffquat time on each path), its
+    timing tables and the accuracy table of the SE(3) Jacobians. Every method's output, mapped back to
+    diffquat's layout, matches diffquat's (the peers' layouts are converted right); every Jacobian
+    compared maps onto diffquat's convention (float64, theta = 1: within 1e-12 of the series); and
+    diffquat's float32 Q block (J_l's, and J_r's, on all three backends) is within 8 float32 eps * |rho|
+    of the series at every angle of the grid, 0 to pi - 1e-6."""
+    import importlib.util
+    import math
+
+    run_benchmark("se3", tmp_path)
+    text = (tmp_path / "SE3.md").read_text()
+    for fragment in (
+        "## Ratios: peer time / diffquat time",
+        "### torch eager",
+        "### jax.jit",
+        "### numpy",
+        "### Every cell where a peer is faster",
+        "## What is timed",
+        "### se3_exp, forward + backward",
+        "## Accuracy of the SE(3) Jacobians",
+        "### The mapping onto diffquat's convention, checked in float64 at theta = 1",
+        "### float32: error of the upper-right 3x3 block, in float32 eps * |rho|",
+        "### float64: error of the upper-right 3x3 block, in float64 eps * |rho|",
+    ):
+        assert fragment in text
+    results = json.loads((tmp_path / "se3.json").read_text())
+    assert all(math.isfinite(c["ratio"]) and c["ratio"] > 0 for c in results["ratios"])
+    assert {c["path"] for c in results["ratios"]} == {"torch eager", "jax.jit", "numpy"}
+    assert {c["op"] for c in results["ratios"]} == set(results["ops"])
+    for entry in results["ops"].values():
+        assert entry["layout_check"] and all(e < 1e-4 for e in entry["layout_check"].values())
+    accuracy = results["accuracy"]
+    assert accuracy["check"] and all(c["ok"] for c in accuracy["check"])
+    peers = {r["label"] for r in accuracy["rows"]}
+    for module, label in (("pypose", "pypose"), ("torchlie", "torchlie"), ("jaxlie", "jaxlie (jit)")):
+        assert label in peers or importlib.util.find_spec(module) is None
+    ours = [
+        r
+        for r in accuracy["rows"]
+        if r["label"].startswith("diffquat") and r["compared"] in ("J_l(xi)", "J_r(xi)")
+    ]
+    assert len(ours) == 6  # J_l and J_r on numpy, torch and jax
+    for row in ours:
+        q = row["float32"]["q"]
+        assert len(q) == len(accuracy["thetas"]) == 13 and max(q) <= 8, (row["label"], row["function"], q)
