@@ -506,3 +506,78 @@ def test_frame_from_three_points_degenerate(backend: Backend) -> None:
         xs = [torch.tensor(x, requires_grad=True) for x in (x1, x2, x3)]
         grads = torch.autograd.grad(dq.frame_from_three_points(*xs).sum(), xs)
         assert all(bool(g.isfinite().all()) for g in grads)
+
+
+def _point_sets(seed: int) -> tuple[np.ndarray, ...]:
+    """Noisy, weighted correspondences (target ~ 1.7 R source + t): general, coplanar (z = 0) and
+    collinear sets of 12 points, (3, 12, 3)."""
+    rng = np.random.default_rng(seed)
+    general = rng.normal(size=(12, 3))
+    coplanar = general * [1.0, 1.0, 0.0]
+    collinear = rng.normal(size=(12, 1)) * np.array([0.6, -0.3, 0.74])
+    source = np.stack([general, coplanar, collinear])
+    rotation = Rotation.from_rotvec([0.4, -1.2, 0.7]).as_matrix()
+    target = 1.7 * source @ rotation.T + np.array([0.5, -2.0, 1.0]) + 0.01 * rng.normal(size=source.shape)
+    return source, target, rng.uniform(0.2, 2.0, size=(3, 12)), rotation
+
+
+def test_fits_against_roma_and_on_degenerate_sets(backend: Backend) -> None:
+    """fit_rigid_transform and fit_similarity_transform against roma's rigid_points_registration
+    (weighted Kabsch and Umeyama) on noisy weighted sets: general and coplanar (where the rotation is
+    still determined) to 1e-12; on a collinear set the rotation is not unique, but the fit maps the
+    line onto the target's as well as roma's (the same residual) and is a rotation; points all equal
+    give the identity rotation and scale 1 (no spread)."""
+    import roma
+
+    dq = backend.module
+    source, target, weights, _ = _point_sets(21)
+
+    def run(fn: Callable[..., Any], *xs: np.ndarray) -> Any:
+        return fn(*(backend.array(x, "float64") for x in xs))
+
+    rigid = backend.to_numpy(run(dq.fit_rigid_transform, source, target, weights))
+    matrix, scale = run(dq.fit_similarity_transform, source, target, weights)
+    matrix, scale = backend.to_numpy(matrix), backend.to_numpy(scale)
+    ts = [torch.tensor(x) for x in (source, target, weights)]
+    r_roma, t_roma = roma.rigid_points_registration(*ts[:2], weights=ts[2])
+    rs_roma, ts_roma, s_roma = roma.rigid_points_registration(*ts[:2], weights=ts[2], compute_scaling=True)
+    np.testing.assert_allclose(rigid[:2, :3, :3], r_roma[:2].numpy(), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(rigid[:2, :3, 3], t_roma[:2].numpy(), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(matrix[:2, :3, :3], rs_roma[:2].numpy(), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(matrix[:2, :3, 3], ts_roma[:2].numpy(), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(scale, s_roma.numpy(), rtol=1e-12)
+
+    def residual(r: Any, t: Any, s: Any = 1.0) -> float:
+        r, t, s = (np.asarray(x, dtype=np.float64) for x in (r, t, s))
+        moved = s * source[2] @ r.T + t
+        return float(np.sum(weights[2] * np.sum((moved - target[2]) ** 2, axis=-1)))
+
+    assert residual(rigid[2, :3, :3], rigid[2, :3, 3]) <= residual(r_roma[2], t_roma[2]) * (1 + 1e-12)
+    assert residual(matrix[2, :3, :3], matrix[2, :3, 3], scale[2]) <= residual(
+        rs_roma[2], ts_roma[2], s_roma[2]
+    ) * (1 + 1e-12)
+    r = rigid[2, :3, :3]
+    np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-14)
+    same = np.broadcast_to([1.0, 2.0, 3.0], (5, 3)).copy()
+    matrix, scale = run(dq.fit_similarity_transform, same, same + 1.0)
+    np.testing.assert_allclose(backend.to_numpy(matrix)[:3, :3], np.eye(3), atol=0)
+    assert float(backend.to_numpy(scale)) == 1.0
+
+
+def test_fit_gradients_on_degenerate_sets() -> None:
+    """Gradients of both fits against central differences on the general and coplanar sets (torch,
+    float64; the table checks the noisy weighted rows on every backend), and finite on the collinear
+    set, where the rotation about the line is not determined."""
+    dq = BACKENDS["torch"].module
+    source, target, weights, _ = _point_sets(22)
+    for fn in (
+        dq.fit_rigid_transform,
+        lambda *xs: (
+            dq.fit_similarity_transform(*xs)[0] * dq.fit_similarity_transform(*xs)[1][..., None, None]
+        ),
+    ):
+        xs = tuple(torch.tensor(x[:2], requires_grad=True) for x in (source, target, weights))
+        assert torch.autograd.gradcheck(fn, xs, eps=1e-6, atol=1e-6, rtol=1e-5, fast_mode=True)
+        xs = tuple(torch.tensor(x[2:], requires_grad=True) for x in (source, target, weights))
+        grads = torch.autograd.grad(fn(*xs).sum(), xs)
+        assert all(bool(g.isfinite().all()) for g in grads)
