@@ -40,12 +40,14 @@ with the series to ~1e-15). Errors in units of eps * |rho| of the dtype: the upp
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import os
 import sys
 import time
 import traceback
+import types
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -231,6 +233,8 @@ class Method:
     notes: list[str] = field(default_factory=list)
     broken: str | None = None  # a compiled peer that does not compile at all: why
     worked: bool = False  # a call has succeeded
+    fell_back: bool = False  # a compiled peer recompiled with graph breaks allowed
+    no_graph_breaks: str | None = None  # why a compiled peer is not retried with graph breaks
 
 
 def _diffquat(op: str, module: Any) -> Callable[..., Any]:
@@ -288,7 +292,10 @@ def pypose_method(op: str) -> Method:
         ),
     }  # fmt: skip
     fn, wrap, prep, post, call = table[op]
-    return Method("pypose", "torch eager", call, fn, prep, wrap, post)
+    method = Method("pypose", "torch eager", call, fn, prep, wrap, post)
+    if op != "se3_right_jacobian":  # every other call goes through pypose's LieTensor
+        method.no_graph_breaks = PYPOSE_NO_GRAPH_BREAKS
+    return method
 
 
 def torchlie_method(op: str) -> Method:
@@ -470,6 +477,20 @@ PEER_BUILDERS: dict[str, Callable[[str], Method]] = {
 }
 
 
+_FRESH = itertools.count()
+
+
+def _fresh(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """``fn`` with a code object of its own. dynamo keeps its compiled code, and counts recompilations
+    against ``recompile_limit``, per code object: every compiled peer wrapped by one shared closure
+    filled that one cache within a few operations, after which calls ran uncompiled (an earlier run of
+    this benchmark: "found no compiled frames", ``FailOnRecompileLimitHit``)."""
+    code = fn.__code__.replace(co_name=f"{fn.__code__.co_name}_{next(_FRESH)}")
+    copy = types.FunctionType(code, fn.__globals__, code.co_name, fn.__defaults__, fn.__closure__)
+    copy.__kwdefaults__ = fn.__kwdefaults__
+    return copy
+
+
 def compiled_peer(method: Method) -> Method:
     """The peer under ``torch.compile``: its wrapping and its call in one compiled function of the
     native tensors. ``fullgraph=True`` first (see :func:`_trial`)."""
@@ -480,6 +501,7 @@ def compiled_peer(method: Method) -> Method:
     def whole(*tensors: Any) -> Any:
         return fn(*(wrap(*tensors) if wrap else tensors))
 
+    whole = _fresh(whole)
     return Method(
         method.label + COMPILED,
         "torch.compile",
@@ -490,6 +512,7 @@ def compiled_peer(method: Method) -> Method:
         method.post,
         compiled=True,
         raw=whole,
+        no_graph_breaks=method.no_graph_breaks,
     )
 
 
@@ -509,7 +532,7 @@ def build_methods(op: str, quick: bool) -> tuple[list[Method], list[str]]:
             DQ["torch.compile"],
             "torch.compile",
             f"torch.compile(fullgraph=True) of {call}",
-            torch.compile(_diffquat(op, dqt), fullgraph=True),
+            torch.compile(_fresh(_diffquat(op, dqt)), fullgraph=True),
             compiled=True,
         )
         methods.append(m)
@@ -590,17 +613,27 @@ def _reason(error: BaseException) -> str:
     return text[0][:300] if text else type(error).__name__
 
 
+# Why a compiled peer is not retried with graph breaks (Method.no_graph_breaks).
+PYPOSE_NO_GRAPH_BREAKS = (
+    "not retried with graph breaks allowed: there, dynamo re-entered pypose's LieTensor.__torch_function__ "
+    "until RecursionError in this benchmark's trial runs, and one run ended in it without a Python error"
+)
+
+
 class LeftOut(Exception):
     """A compiled peer that compiles neither with ``fullgraph=True`` nor with graph breaks: left out of
     every cell (the reason is in its notes)."""
 
 
-def _trial(method: Method, inputs: tuple[np.ndarray, ...], backward: bool) -> tuple[Callable[[], Any], float]:
+def _trial(
+    method: Method, inputs: tuple[np.ndarray, ...], backward: bool, where: str
+) -> tuple[Callable[[], Any], float]:
     """The method's call, run once (its first call: compilation, warm-up), and how long that took.
 
-    A compiled peer whose ``fullgraph=True`` compilation fails is recompiled with graph breaks allowed,
-    for this cell and every later one, and the reason is noted; one that fails on its first call then too
-    is left out of every cell (:class:`LeftOut`). Any other failure raises, for that cell alone."""
+    A compiled peer whose ``fullgraph=True`` compilation fails (in the cell ``where``) is recompiled
+    with graph breaks allowed, for this cell and every later one, and that is noted; one that has never
+    compiled and fails then too is left out of every cell (:class:`LeftOut`). Any other failure raises,
+    for that cell alone."""
     import torch
 
     if method.broken:
@@ -612,23 +645,37 @@ def _trial(method: Method, inputs: tuple[np.ndarray, ...], backward: bool) -> tu
         _sync(call())
     except Exception as error:
         peer = method.compiled and method.raw is not None and method.label != DQ["torch.compile"]
-        if not peer or method.worked:
+        if not peer or method.fell_back:
             raise
         reason = _reason(error)
-        method.fn = torch.compile(method.raw)
+        no_fallback = method.no_graph_breaks
+        if no_fallback:
+            if method.worked:
+                raise
+            method.broken = f"does not compile: fullgraph=True failed ({reason}); {no_fallback}; left out"
+            method.notes.append(method.broken)
+            raise LeftOut(method.broken) from error
+        method.fell_back = True
+        method.fn = torch.compile(_fresh(method.raw))
         call = make_call(method, inputs, backward)
         assert call is not None
         start = time.perf_counter()
         try:
             _sync(call())
         except Exception as again:
+            if method.worked:
+                method.notes.append(
+                    f"fullgraph=True failed from {where} on ({reason}), and with graph breaks"
+                )
+                raise
             method.broken = (
                 f"does not compile: fullgraph=True failed ({reason}), and with graph breaks allowed "
                 f"({_reason(again)}); left out of every cell"
             )
             method.notes.append(method.broken)
             raise LeftOut(method.broken) from again
-        method.notes.append(f"fullgraph=True failed ({reason}); timed with graph breaks allowed")
+        first = "" if not method.worked else f" from {where} on (the cells before: fullgraph=True)"
+        method.notes.append(f"fullgraph=True failed{first} ({reason}); timed with graph breaks allowed")
     method.worked = True
     return call, time.perf_counter() - start
 
@@ -660,7 +707,7 @@ def timings(
                     try:
                         with warnings.catch_warnings():
                             warnings.simplefilter("ignore")
-                            calls[m.label], first[m.label] = _trial(m, inputs, backward)
+                            calls[m.label], first[m.label] = _trial(m, inputs, backward, f"{mode}, N = {n}")
                     except LeftOut:
                         pass
                     except Exception as error:
