@@ -230,7 +230,11 @@ def test_quick_se3_benchmark_writes_results(tmp_path: Path) -> None:
     results = json.loads((tmp_path / "se3.json").read_text())
     assert all(math.isfinite(c["ratio"]) and c["ratio"] > 0 for c in results["ratios"])
     assert {c["path"] for c in results["ratios"]} == {"torch eager", "jax.jit", "numpy"}
-    assert {c["op"] for c in results["ratios"]} == set(results["ops"])
+    # every op has a ratio against some peer; the right Jacobian's peers (pypose, torchlie) are in the
+    # bench extra only, which the test command does not install
+    jacobian_peers = any(importlib.util.find_spec(m) is not None for m in ("pypose", "torchlie"))
+    expected_ops = {op for op in results["ops"] if jacobian_peers or op != "se3_right_jacobian"}
+    assert {c["op"] for c in results["ratios"]} == expected_ops
     for entry in results["ops"].values():
         assert entry["layout_check"] and all(e < 1e-4 for e in entry["layout_check"].values())
     accuracy = results["accuracy"]
