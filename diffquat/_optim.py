@@ -31,6 +31,27 @@ Conventions (derived here once; the public docstrings repeat what each needs):
   ``R exp(t d)``), and every transport is a rotation, so it keeps lengths and inner products.
 - **Retraction.** ``R exp(d)`` and ``q exp(d)`` (``so3_plus``'s and ``quaternion_plus``' values): the
   exponential map, exact (:func:`retract`).
+
+Poses (manifold ``"se3"``): rigid transforms ``T = [[R, t], [0, 1]]`` ``(..., 4, 4)``.
+
+- **Tangent vectors** are body twists ``(rho, phi)`` ``(..., 6)``, translation first, the direction of
+  ``T exp(t delta)`` (``se3_plus(T, t delta)``). The metric is that of ``R^3 x SO(3)``:
+  ``|delta|^2 = |rho|^2 + |phi|^2``, since along ``T exp(t delta)`` the translation moves at
+  ``R rho`` (whose length is ``|rho|``) and the rotation turns at ``phi`` in its body frame. Left
+  invariant (a change of world frame keeps every length), in metres and radians: the two parts get
+  their own second moments in Adam (below), as their units differ.
+- **Gradient.** ``d/dw f(T exp(w))`` at 0 pairs ``G`` (``df/dT``, ``(..., 4, 4)``) with
+  ``T hat(w) = [[R hat(phi), R rho], [0, 0]]``: ``<G_t, R rho> + <R^T G_R, hat(phi)>``, so the tangent
+  gradient is ``(R^T G_t, vee(R^T G_R - G_R^T R))`` with ``G_R``, ``G_t`` the blocks of ``G``
+  (:func:`pose_tangent_gradient`); the bottom row of ``G`` pairs with nothing.
+- **Parallel transport** in ``R^3 x SO(3)``: the rotation part as on SO(3), ``exp(-d_phi / 2) v``; the
+  translation part is a vector of ``R^3``, parallel when constant in the world frame, where its body
+  coordinates turn with the frame. So the optimisers keep the translation part of their moments in
+  the world frame, ``R rho`` (:func:`translation_to_world`), where the transport is the identity, and
+  take the step back to the body frame with the rotation of the current pose: exact whatever
+  transformation follows (a learning rate, a schedule), with nothing stored but the moments.
+- **Retraction** ``T exp(d)`` (``se3_plus``' value), the rotation through its quaternion as above:
+  ``[[R exp(d_phi), t + R J_l(d_phi) d_rho], [0, 1]]``, bottom row exact (:func:`retract`).
 """
 
 from __future__ import annotations
@@ -42,6 +63,7 @@ from . import _algebra
 
 MATRIX = "matrix"
 QUATERNION = "quaternion"
+POSE = "pose"
 
 
 def rotation_kind(shape: tuple[int, ...]) -> str | None:
@@ -54,10 +76,23 @@ def rotation_kind(shape: tuple[int, ...]) -> str | None:
     return None
 
 
+def parameter_kind(shape: tuple[int, ...], manifold: str) -> str | None:
+    """The kind of a parameter on ``manifold`` (``"so3"``: :func:`rotation_kind`; ``"se3"``:
+    ``"pose"`` for a shape ending in ``(4, 4)``), ``None`` if the shape cannot be one. Static."""
+    if manifold == "se3":
+        return POSE if len(shape) >= 2 and shape[-2:] == (4, 4) else None
+    return rotation_kind(shape)
+
+
 def tangent_shape(shape: tuple[int, ...], kind: str) -> tuple[int, ...]:
-    """Shape of the tangent vectors of a rotation parameter: its batch shape, then 3."""
-    batch = shape[:-2] if kind == MATRIX else shape[:-1]
-    return (*batch, 3)
+    """Shape of the tangent vectors of a parameter: its batch shape, then 3 (6 for poses)."""
+    batch = shape[:-1] if kind == QUATERNION else shape[:-2]
+    return (*batch, 6 if kind == POSE else 3)
+
+
+def second_moment_size(kind: str) -> int:
+    """Adam's second moments per rotation (1) or pose (2: translation, rotation)."""
+    return 2 if kind == POSE else 1
 
 
 def matrix_tangent_gradient(xp: Any, matrix: Any, grad: Any) -> Any:
@@ -87,10 +122,47 @@ def _parts(q: Any, scalar_first: bool) -> tuple[Any, Any]:
     return (q[..., :1], q[..., 1:]) if scalar_first else (q[..., 3:], q[..., :3])
 
 
+def pose_tangent_gradient(xp: Any, pose: Any, grad: Any) -> Any:
+    """``(R^T G_t, vee(R^T G_R - G_R^T R))``, shape ``(..., 6)``: the gradient of
+    ``w -> f(T exp(w))`` at ``w = 0`` from the Euclidean gradient ``G = df/dT`` ``(..., 4, 4)``
+    (see the module)."""
+    rotation = pose[..., :3, :3]
+    rho = translation_to_body(xp, rotation, grad[..., :3, 3])
+    phi = matrix_tangent_gradient(xp, rotation, grad[..., :3, :3])
+    return xp.concat([rho, phi], axis=-1)
+
+
+def translation_to_world(xp: Any, rotation: Any, rho: Any) -> Any:
+    """``R rho`` ``(..., 3)``: body coordinates of a translation to world coordinates (sums of
+    products, no batched 3x3 product)."""
+    return xp.sum(rotation * rho[..., None, :], axis=-1)
+
+
+def translation_to_body(xp: Any, rotation: Any, v: Any) -> Any:
+    """``R^T v`` ``(..., 3)``: world coordinates of a translation to body coordinates."""
+    return xp.sum(rotation * v[..., :, None], axis=-2)
+
+
+def pose_to_world(xp: Any, pose: Any, twist: Any) -> Any:
+    """A body twist ``(rho, phi)`` ``(..., 6)`` with its translation part in world coordinates,
+    ``(R rho, phi)``: the form in which the optimisers keep the moments of a pose (see the module)."""
+    rho = translation_to_world(xp, pose[..., :3, :3], twist[..., :3])
+    return xp.concat([rho, twist[..., 3:]], axis=-1)
+
+
+def pose_to_body(xp: Any, pose: Any, twist: Any) -> Any:
+    """The inverse of :func:`pose_to_world`: ``(R^T v, phi)``."""
+    rho = translation_to_body(xp, pose[..., :3, :3], twist[..., :3])
+    return xp.concat([rho, twist[..., 3:]], axis=-1)
+
+
 def tangent_gradient(xp: Any, param: Any, grad: Any, kind: str, scalar_first: bool) -> Any:
-    """The tangent gradient ``(..., 3)`` of a rotation parameter of either kind (see the module)."""
+    """The tangent gradient ``(..., 3)`` (poses ``(..., 6)``) of a parameter of any kind (see the
+    module)."""
     if kind == MATRIX:
         return matrix_tangent_gradient(xp, param, grad)
+    if kind == POSE:
+        return pose_tangent_gradient(xp, param, grad)
     return quaternion_tangent_gradient(xp, param, grad, scalar_first)
 
 
@@ -122,15 +194,23 @@ def transport(xp: Any, delta: Any, vector: Any) -> Any:
 
 
 def retract(dq: Any, xp: Any, param: Any, delta: Any, kind: str, scalar_first: bool) -> Any:
-    """``R exp(delta)`` or ``q exp(delta)``, with the backend module ``dq`` and its namespace ``xp``.
+    """``R exp(delta)``, ``q exp(delta)`` or ``T exp(delta)``, with the backend module ``dq`` and its
+    namespace ``xp``.
 
     Matrices go through their quaternion: ``quaternion_to_matrix(q exp(delta))`` with
     ``q = matrix_to_quaternion(R)`` is ``so3_plus(R, delta)`` for a rotation ``R``, and is orthonormal
     to a few ulps whatever rounding ``R`` carries, where ``R @ exp(delta)`` keeps the rounding of every
     earlier step: in float32 its ``|R^T R - I|`` grew to 2e-5 in 1e4 steps (measured), this one stays
-    at the first step's few ulps. Quaternions are normalised after each product likewise."""
+    at the first step's few ulps. Quaternions are normalised after each product likewise. A pose's
+    rotation goes the same way, and its translation moves by ``R J_l(phi) rho``, the translation of
+    ``T exp(delta)`` (``se3_exp``'s): ``se3_plus``' value, bottom row exact."""
     if kind == MATRIX:
         return dq.quaternion_to_matrix(dq.quaternion_plus(dq.matrix_to_quaternion(param), delta))
+    if kind == POSE:
+        rotation, translation = param[..., :3, :3], param[..., :3, 3]
+        rotated = retract(dq, xp, rotation, delta[..., 3:], MATRIX, scalar_first)
+        step = translation_to_world(xp, rotation, dq.se3_exp(delta)[..., :3, 3])
+        return dq.se3_from_rotation_translation(rotated, translation + step)
     return dq.quaternion_plus(param, delta, scalar_first=scalar_first)
 
 
@@ -199,3 +279,71 @@ def momentum(
     if tangent:
         buffer = transport(xp, update, buffer)
     return update, buffer
+
+
+def _pairs(xp: Any, twist: Any) -> Any:
+    """``(..., 6)`` as ``(..., 2, 3)``: a pose's translation and rotation parts."""
+    return xp.reshape(twist, (*twist.shape[:-1], 2, 3))
+
+
+def _joined(xp: Any, pairs: Any) -> Any:
+    return xp.reshape(pairs, (*pairs.shape[:-2], 6))
+
+
+def pose_adam(
+    xp: Any,
+    pose: Any,
+    grad: Any,
+    exp_avg: Any,
+    exp_avg_sq: Any,
+    max_exp_avg_sq: Any,
+    step: Any,
+    betas: tuple[float, float],
+    eps: float,
+    amsgrad: bool,
+) -> tuple[Any, Any, Any, Any]:
+    """:func:`adam` for a pose at ``pose`` ``(..., 4, 4)``, from its tangent gradient ``(..., 6)``:
+    ``(direction, exp_avg, exp_avg_sq, max_exp_avg_sq)``, the direction a body twist ``(..., 6)``.
+
+    The first moment ``(..., 6)`` keeps its translation part in the world frame (its parallel
+    transport is then the identity; see the module), the second moment is one number per part,
+    ``(..., 2)``: ``|g_rho|^2`` and ``|g_phi|^2`` averaged, each independent of the frame, and each
+    part of the direction is along its part of the first moment (so the rotation part's transport is
+    the identity, as on SO(3)). ``max_exp_avg_sq`` is ignored (and returned) unless ``amsgrad``."""
+    maximum = max_exp_avg_sq[..., None] if amsgrad else None
+    direction, exp_avg, exp_avg_sq, maximum = adam(
+        xp,
+        _pairs(xp, pose_to_world(xp, pose, grad)),
+        _pairs(xp, exp_avg),
+        exp_avg_sq[..., None],
+        maximum,
+        step,
+        betas,
+        eps,
+        amsgrad,
+        True,
+    )
+    direction = pose_to_body(xp, pose, _joined(xp, direction))
+    return direction, _joined(xp, exp_avg), exp_avg_sq[..., 0], maximum[..., 0] if amsgrad else max_exp_avg_sq
+
+
+def pose_momentum(
+    xp: Any,
+    pose: Any,
+    grad: Any,
+    buffer: Any,
+    first: Any,
+    lr: Any,
+    momentum_: float,
+    dampening: float,
+    nesterov: bool,
+) -> tuple[Any, Any]:
+    """:func:`momentum` for a pose at ``pose`` ``(..., 4, 4)``, from its tangent gradient ``(..., 6)``:
+    ``(update, buffer)``, the update a body twist. The buffer keeps its translation part in the world
+    frame (transported by the identity) and its rotation part in the body frame, transported along
+    the step's rotation as on SO(3)."""
+    update, buffer = momentum(
+        xp, pose_to_world(xp, pose, grad), buffer, first, lr, momentum_, dampening, nesterov, False
+    )
+    buffer = xp.concat([buffer[..., :3], transport(xp, update[..., 3:], buffer[..., 3:])], axis=-1)
+    return pose_to_body(xp, pose, update), buffer

@@ -120,7 +120,7 @@ TOPICS: dict[str, list[str]] = {
         "init_rotation_head",
         "rotation_head",
     ],
-    "Optimisers on SO(3)": [
+    "Optimisers on SO(3) and SE(3)": [
         "RiemannianAdam",
         "RiemannianSGD",
         "MANIFOLDS",

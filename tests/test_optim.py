@@ -12,6 +12,7 @@ float32 steps, state dicts, parameter groups, the refusals, and optax's multi_tr
 from __future__ import annotations
 
 import io
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -377,20 +378,39 @@ def test_torch_refusals() -> None:
     assert len(optimizer.param_groups) == 1  # a refused group is not kept
 
 
-def test_documented_example_runs() -> None:
-    """The documentation's block on the optimisers (docs/optimisation.md), as written there: every
-    rotation ends at its target, and the parameters are rotations."""
+def documented_example(heading: str) -> dict[str, Any]:
+    """Runs the first code block after ``heading`` in docs/optimisation.md, as written there, and
+    returns its variables."""
     from pathlib import Path
 
     text = (Path(__file__).resolve().parents[1] / "docs" / "optimisation.md").read_text()
-    start = text.index("```python", text.index("# Optimising rotations on the manifold"))
+    start = text.index("```python", text.index(heading))
     code = text[start + len("```python") : text.index("```", start + 1)]
     torch.manual_seed(0)
     scope: dict[str, Any] = {}
     exec(code, scope)  # the page's own code
+    return scope
+
+
+def test_documented_example_runs() -> None:
+    """The documentation's block on the optimisers: every rotation ends at its target, and the
+    parameters are rotations."""
+    scope = documented_example("# Optimising rotations on the manifold")
     R = scope["R"].detach()
     assert dqt.matrix_geodesic_distance(R, scope["target"]).max() < 1e-3
     assert (R.transpose(-1, -2) @ R - torch.eye(3)).abs().max() < 1e-5
+
+
+def test_documented_pose_example_runs() -> None:
+    """The documentation's block on poses: every pose ends at the least-squares optimum
+    (fit_rigid_transform) from the identity, and the parameters are rigid transforms."""
+    scope = documented_example("## Poses: SE(3)")
+    T = scope["T"].detach()
+    optimum = dqt.fit_rigid_transform(scope["points"], scope["observed"])
+    assert dqt.matrix_geodesic_distance(T[:, :3, :3], optimum[:, :3, :3]).max() < 1e-4
+    assert (T[:, :3, 3] - optimum[:, :3, 3]).abs().max() < 1e-4
+    assert (T[:, :3, :3].transpose(-1, -2) @ T[:, :3, :3] - torch.eye(3)).abs().max() < 1e-5
+    assert torch.equal(T[:, 3], torch.tensor([0.0, 0.0, 0.0, 1.0]).expand(len(T), 4))
 
 
 def test_modules_declare_their_public_names() -> None:
@@ -411,23 +431,23 @@ def test_modules_declare_their_public_names() -> None:
 
 
 CROSS: dict[
-    str, tuple[Callable[[list[Any]], torch.optim.Optimizer], Callable[[], optax.GradientTransformation]]
+    str, tuple[Callable[[list[Any]], torch.optim.Optimizer], Callable[..., optax.GradientTransformation]]
 ] = {
     "adam": (
         lambda ps: RiemannianAdam(ps, lr=0.05, betas=(0.8, 0.99), eps=1e-6),
-        lambda: jo.riemannian_adam(0.05, 0.8, 0.99, 1e-6),
+        lambda **kw: jo.riemannian_adam(0.05, 0.8, 0.99, 1e-6, **kw),
     ),
     "adam-amsgrad": (
         lambda ps: RiemannianAdam(ps, lr=0.05, amsgrad=True),
-        lambda: jo.riemannian_adam(0.05, amsgrad=True),
+        lambda **kw: jo.riemannian_adam(0.05, amsgrad=True, **kw),
     ),
     "sgd-nesterov": (
         lambda ps: RiemannianSGD(ps, lr=0.005, momentum=0.9, nesterov=True),
-        lambda: jo.riemannian_sgd(0.005, 0.9, nesterov=True),
+        lambda **kw: jo.riemannian_sgd(0.005, 0.9, nesterov=True, **kw),
     ),
     "sgd-dampening": (
         lambda ps: RiemannianSGD(ps, lr=0.005, momentum=0.8, dampening=0.3),
-        lambda: jo.riemannian_sgd(0.005, 0.8, dampening=0.3),
+        lambda **kw: jo.riemannian_sgd(0.005, 0.8, dampening=0.3, **kw),
     ),
 }
 
@@ -576,3 +596,281 @@ def test_jax_refusals() -> None:
         jo.apply_updates({"R": params["R"]}, {"R": jnp.zeros(4, jnp.float64)})
     with pytest.raises(ValueError, match="Nesterov momentum requires"):
         jo.riemannian_sgd(0.1, nesterov=True)
+
+
+# ---------------------------------------------------------------------------------------------------
+# SE(3): rigid transforms (manifold "se3")
+
+
+def poses(n: int, seed: int = 20) -> np.ndarray:
+    """``n`` random rigid transforms (float64), the identity and a half-turn among them."""
+    rng = np.random.default_rng(seed)
+    return dqn.se3_from_rotation_translation(rotations(n, seed), rng.normal(size=(n, 3)))
+
+
+def central_differences_6(f: Callable[[np.ndarray], np.ndarray], n: int, h: float = 1e-6) -> np.ndarray:
+    """``d f(w) / dw`` at 0 for ``f`` of twists ``(n, 6)`` giving ``(n,)``."""
+    steps = np.eye(6)[:, None, :] * h
+    return np.stack(
+        [(f(np.broadcast_to(s, (n, 6))) - f(-np.broadcast_to(s, (n, 6)))) / (2 * h) for s in steps], -1
+    )
+
+
+def test_pose_tangent_gradient_is_the_derivative_along_the_retraction() -> None:
+    """``(R^T G_t, vee(R^T G_R - G_R^T R))`` against central differences of ``f(se3_plus(T, w))``,
+    for a function of every entry (the bottom row's gradient must not leak in)."""
+    rng = np.random.default_rng(21)
+    T = poses(6)
+    a = rng.normal(size=(6, 4, 4))
+
+    def f(m: np.ndarray) -> np.ndarray:
+        return np.sum(a * m**3, axis=(-1, -2))
+
+    expected = central_differences_6(lambda w: f(dqn.se3_plus(T, w)), 6)
+    np.testing.assert_allclose(_optim.pose_tangent_gradient(np, T, 3 * a * T**2), expected, atol=1e-8)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_pose_retraction_is_se3_plus(dtype: type) -> None:
+    """The retraction gives se3_plus' values (float64 reference) within a few ulps of the entries'
+    size, with the bottom row exact, for rotation steps of 0, across the series' thresholds (SO(3)'s
+    at eps^(1/4), SE(3)'s Q below |phi| = 2), large, and beyond pi."""
+    rng = np.random.default_rng(22)
+    lengths = np.array([0, 1e-9, 1e-4, 1.3e-4, 0.019, 0.5, 1.99, 2.01, 3, np.pi - 1e-6, 4, 7])
+    axes = rng.normal(size=(len(lengths), 3))
+    delta = np.concatenate(
+        [
+            rng.normal(size=(len(lengths), 3)),
+            axes / np.linalg.norm(axes, axis=-1, keepdims=True) * lengths[:, None],
+        ],
+        axis=-1,
+    )
+    T = poses(len(lengths))
+    got = _optim.retract(dqn, np, T.astype(dtype), delta.astype(dtype), _optim.POSE, True)
+    assert got.dtype == dtype
+    expected = dqn.se3_plus(T, delta)
+    scale = 1 + np.abs(expected).max(axis=(-1, -2), keepdims=True)
+    assert np.max(np.abs(got - expected) / scale) <= 16 * float(np.finfo(dtype).eps)
+    np.testing.assert_array_equal(got[..., 3, :], np.broadcast_to([0.0, 0.0, 0.0, 1.0], got[..., 3, :].shape))
+
+
+def test_pose_momentum_is_the_parallel_transport_of_the_embedded_manifold() -> None:
+    """A Nesterov step (not along its buffer) moves the buffer to the new pose as the Levi-Civita
+    transport of R^3 x SO(3), embedded in R^3 x R^(3x3): the translation part constant in the ambient
+    space (read in the new pose's body frame), the rotation part by projection (as on SO(3))."""
+    rng = np.random.default_rng(23)
+    T, grad = poses(8), rng.normal(size=(8, 6))
+    grad[0] = 0.0
+    update, buffer = _optim.pose_momentum(np, T, grad, np.zeros((8, 6)), True, 0.4, 0.9, 0.0, True)
+    moved = _optim.retract(dqn, np, T, update, _optim.POSE, True)
+    body = _optim.pose_to_body(np, moved, buffer)  # the buffer in the body frame of the new pose
+    R, R_new = T[:, :3, :3], moved[:, :3, :3]
+    expected_rho = np.einsum("nji,njk,nk->ni", R_new, R, grad[:, :3])
+    phi = grad[:, 3:]
+    expected_phi = 2 * projection_transport(R, update[:, 3:], phi, 1600) - projection_transport(
+        R, update[:, 3:], phi, 800
+    )
+    np.testing.assert_allclose(body[:, :3], expected_rho, atol=1e-12)
+    np.testing.assert_allclose(body[:, 3:], expected_phi, atol=1e-5)
+    assert np.abs(body[:, :3] - grad[:, :3]).max() > 0.1  # the body coordinates do turn
+
+
+def registration_problem(batch: int, seed: int = 24) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Points, their noisy images under random poses, the closed-form optimum (``fit_rigid_transform``)
+    and a start 170 degrees and ~2 units away from it."""
+    rng = np.random.default_rng(seed)
+    points = rng.normal(size=(batch, 20, 3))
+    targets = dqn.se3_apply(poses(batch, seed)[:, None], points) + 0.01 * rng.normal(size=points.shape)
+    optimum = dqn.fit_rigid_transform(points, targets)
+    axis = rng.normal(size=(batch, 3))
+    axis *= np.deg2rad(170.0) / np.linalg.norm(axis, axis=-1, keepdims=True)
+    start = dqn.se3_plus(optimum, np.concatenate([rng.normal(size=(batch, 3)), axis], axis=-1))
+    return points, targets, optimum, start
+
+
+@pytest.mark.parametrize("name", list(TORCH_OPTIMIZERS))
+def test_torch_pose_optimizers_converge_to_the_closed_form(name: str) -> None:
+    """A batch of point-set registrations, each started 170 degrees away: every pose ends within
+    1e-3 degrees and 1e-5 units of fit_rigid_transform's optimum, a rigid transform."""
+    points, targets, optimum, start = registration_problem(8)
+    T = torch.nn.Parameter(torch.tensor(start))
+    optimizer = TORCH_OPTIMIZERS[name]([{"params": [T], "manifold": "se3"}])
+    schedule = torch.optim.lr_scheduler.ExponentialLR(optimizer, DECAY[name])
+    p_t, t_t = torch.tensor(points), torch.tensor(targets)
+    for _ in range(400):
+        optimizer.zero_grad()
+        ((dqt.se3_apply(T[:, None], p_t) - t_t) ** 2).sum().backward()
+        optimizer.step()
+        schedule.step()
+    got = T.detach().numpy()
+    assert np.rad2deg(dqn.matrix_geodesic_distance(got[:, :3, :3], optimum[:, :3, :3])).max() < 1e-3
+    assert np.abs(got[:, :3, 3] - optimum[:, :3, 3]).max() < 1e-5
+    np.testing.assert_array_equal(got[:, 3], np.broadcast_to([0.0, 0.0, 0.0, 1.0], (8, 4)))
+
+
+def test_torch_pose_momentum_of_the_translation_keeps_its_world_direction() -> None:
+    """A constant world-frame force on the translation while the rotation spins: the momentum buffer's
+    translation part (kept in the world frame) is the geometric sum of the force, and the translation
+    moves along it, where body-frame moments without transport would turn with the rotation."""
+    T = torch.nn.Parameter(torch.eye(4, dtype=torch.float64))
+    force = torch.tensor([0.3, -0.2, 0.5], dtype=torch.float64)
+    spin = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    optimizer = RiemannianSGD([T], lr=0.01, momentum=0.9, manifold="se3")
+    turned = torch.zeros((), dtype=torch.float64)
+    for k in range(1, 61):
+        before = T.detach()[:3, 3].clone()
+        optimizer.zero_grad()
+        # d/dT of <force, t> + the turn about z: a constant tangent gradient (force, spin) at every pose
+        R = T.detach()[:3, :3].clone()
+        T.grad = torch.zeros(4, 4, dtype=torch.float64)
+        T.grad[:3, 3] = force
+        T.grad[:3, :3] = 0.5 * R @ dqt.so3_hat(spin)
+        optimizer.step()
+        buffer = optimizer.state[T]["momentum_buffer"]
+        torch.testing.assert_close(buffer[:3], force * (1 - 0.9**k) / (1 - 0.9), rtol=1e-12, atol=0)
+        step = T.detach()[:3, 3] - before
+        cosine = -(step @ force) / (step.norm() * force.norm())
+        # Down the force, to within the turn of J_l(d_phi) in the step R J_l(d_phi) d_rho: at most
+        # |d_phi| / 2 = 0.05 rad here, while the frame turns by 0.1 rad a step, 5.9 rad in all.
+        assert cosine > math.cos(0.051)
+        turned = turned + dqt.matrix_geodesic_distance(T.detach()[:3, :3], R)
+    assert turned > 4.0
+
+
+def test_pose_parameters_stay_rigid_for_ten_thousand_float32_steps() -> None:
+    """1e4 float32 steps of about 0.1 to 0.3 (rad and units), random gradients, in torch and in jax
+    (one compiled loop): |R^T R - I| <= 1e-5, det R > 0, the bottom row exactly (0, 0, 0, 1)."""
+    rng = np.random.default_rng(25)
+    start = poses(32).astype(np.float32)
+    grads = rng.normal(size=(64, 32, 4, 4)).astype(np.float32)
+    T = torch.nn.Parameter(torch.tensor(start))
+    optimizer = RiemannianSGD([T], lr=0.1, manifold="se3")
+    grads_t = torch.tensor(grads)
+    for k in range(10_000):
+        T.grad = grads_t[k % 64]
+        optimizer.step()
+    transformation = jo.riemannian_sgd(0.1, manifold="se3")
+    grads_j = jnp.asarray(grads)
+
+    def body(k: jax.Array, carry: Any) -> Any:
+        params, state = carry
+        updates, state = transformation.update({"T": grads_j[k % 64]}, state, params)
+        return jo.apply_updates(params, updates), state
+
+    params = {"T": jnp.asarray(start)}
+    params, _ = jax.jit(lambda p: jax.lax.fori_loop(0, 10_000, body, (p, transformation.init(p))))(params)
+    for got in (T.detach().numpy(), np.asarray(params["T"])):
+        R = got[:, :3, :3].astype(np.float64)
+        assert np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max() <= 1e-5
+        assert np.linalg.det(R).min() > 0
+        np.testing.assert_array_equal(got[:, 3], np.broadcast_to(np.float32([0, 0, 0, 1]), (32, 4)))
+
+
+@pytest.mark.parametrize("name", list(CROSS))
+def test_torch_and_jax_take_the_same_pose_steps_in_float64(name: str) -> None:
+    points, targets, _, start = registration_problem(4)
+    make_torch, make_jax = CROSS[name]
+    T = torch.nn.Parameter(torch.tensor(start))
+    optimizer = make_torch([{"params": [T], "manifold": "se3"}])
+    transformation = make_jax(manifold="se3")
+
+    def loss_jax(params: dict[str, jax.Array]) -> jax.Array:
+        return jnp.sum((dqj.se3_apply(params["T"][:, None], points) - targets) ** 2)
+
+    @jax.jit
+    def step(params: dict[str, jax.Array], state: Any) -> tuple[dict[str, jax.Array], Any]:
+        updates, state = transformation.update(jax.grad(loss_jax)(params), state, params)
+        return jo.apply_updates(params, updates), state
+
+    params = {"T": jnp.asarray(start)}
+    state = transformation.init(params)
+    p_t, t_t = torch.tensor(points), torch.tensor(targets)
+    for _ in range(30):
+        optimizer.zero_grad()
+        ((dqt.se3_apply(T[:, None], p_t) - t_t) ** 2).sum().backward()
+        optimizer.step()
+        params, state = step(params, state)
+    np.testing.assert_allclose(np.asarray(params["T"]), T.detach().numpy(), atol=1e-12)
+    assert np.abs(T.detach().numpy() - start).max() > 0.1  # it moved
+
+
+def test_jax_pose_leaves_under_multi_transform_and_through_apply_updates() -> None:
+    """A pytree of a pose, a rotation and an ordinary array under optax.multi_transform, told apart
+    by labels; differentiated through apply_updates at 0, a loss's derivative in the pose's update is
+    its tangent gradient (project_to_tangent(manifold="se3"))."""
+    rng = np.random.default_rng(26)
+    params = {"T": jnp.asarray(poses(3)), "R": jnp.asarray(rotations(3)), "w": jnp.zeros(4, jnp.float64)}
+    weights = {k: jnp.asarray(rng.normal(size=v.shape)) for k, v in params.items()}
+
+    def loss(p: dict[str, jax.Array]) -> jax.Array:
+        return sum(jnp.sum(weights[k] * p[k] ** 3) for k in p)
+
+    mixed = optax.multi_transform(
+        {
+            "se3": jo.riemannian_adam(0.05, manifold="se3"),
+            "so3": jo.riemannian_adam(0.05),
+            "e": optax.sgd(0.1),
+        },
+        {"T": "se3", "R": "so3", "w": "e"},
+    )
+
+    @jax.jit
+    def step(params: Any, state: Any) -> Any:
+        updates, state = mixed.update(jax.grad(loss)(params), state, params)
+        return jo.apply_updates(params, updates), state
+
+    state = mixed.init(params)
+    moved = params
+    for _ in range(5):
+        moved, state = step(moved, state)
+    alone = jo.riemannian_adam(0.05, manifold="se3")
+    T, alone_state = {"T": params["T"]}, alone.init({"T": params["T"]})
+    for _ in range(5):
+        g = jax.grad(lambda t: loss({**params, **moved, "T": t["T"]}))(T)
+        updates, alone_state = alone.update(g, alone_state, T)
+        T = jo.apply_updates(T, updates)
+    np.testing.assert_allclose(np.asarray(moved["T"]), np.asarray(T["T"]), rtol=0, atol=1e-14)
+    assert np.abs(np.asarray(moved["T"] - params["T"])).max() > 0.05
+
+    pose = {"T": params["T"]}
+    through = jax.jit(jax.grad(lambda u: loss({**params, **jo.apply_updates(pose, u)})))(
+        {"T": jnp.zeros((3, 6), jnp.float64)}
+    )
+    project = jo.project_to_tangent(manifold="se3").update
+    projected, _ = jax.jit(
+        lambda p: project(jax.grad(lambda t: loss({**params, **t}))(p), optax.EmptyState(), p)
+    )(pose)
+    np.testing.assert_allclose(np.asarray(through["T"]), np.asarray(projected["T"]), rtol=1e-12, atol=1e-12)
+
+
+def test_pose_refusals() -> None:
+    eye4 = torch.eye(4)
+    with pytest.raises(
+        ValueError,
+        match=r"parameter 0 of param group 0 has shape \(3, 3\); a param group with manifold 'se3'",
+    ):
+        RiemannianAdam([torch.nn.Parameter(torch.eye(3))], manifold="se3")
+    shear = eye4.clone()
+    shear[3, 0] = 0.5
+    with pytest.raises(ValueError, match=r"does not hold rigid transforms"):
+        RiemannianSGD([torch.nn.Parameter(shear)], manifold="se3")
+    with pytest.raises(
+        ValueError,
+        match=r"holds rigid transforms, which a group with manifold 'so3' would read as quaternions",
+    ):
+        RiemannianAdam([torch.nn.Parameter(eye4)])
+    with pytest.raises(ValueError, match=r"manifold 'se3'\) has weight_decay=0.1"):
+        RiemannianAdam([torch.nn.Parameter(eye4)], manifold="se3", weight_decay=0.1)
+    params = {"R": jnp.eye(3, dtype=jnp.float64)}
+    with pytest.raises(ValueError, match=r"leaf \['R'\] has shape \(3, 3\); expected rigid transforms"):
+        jo.riemannian_adam(0.1, manifold="se3").init(params)
+    with pytest.raises(ValueError, match=r"riemannian_sgd: manifold='sphere'"):
+        jo.riemannian_sgd(0.1, manifold="sphere")
+    pose = {"T": jnp.eye(4, dtype=jnp.float64)}
+    transformation = jo.scale_by_riemannian_adam(manifold="se3")
+    with pytest.raises(ValueError, match=r"needs the params on SE\(3\)"):
+        transformation.update({"T": jnp.zeros(6, jnp.float64)}, transformation.init(pose))
+    with pytest.raises(ValueError, match=r"update \['T'\] has shape \(3,\); expected tangent vectors \(6,\)"):
+        transformation.update({"T": jnp.zeros(3, jnp.float64)}, transformation.init(pose), pose)
+    with pytest.raises(ValueError, match=r"leaf \['T'\] of shape \(4, 4\) has an update of shape \(5,\)"):
+        jo.apply_updates(pose, {"T": jnp.zeros(5, jnp.float64)})

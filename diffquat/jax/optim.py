@@ -1,5 +1,5 @@
-"""Riemannian optimisers on SO(3) for JAX, as optax ``GradientTransformation`` s, with the retraction
-that applies their updates.
+"""Riemannian optimisers on SO(3) and SE(3) for JAX, as optax ``GradientTransformation`` s, with the
+retraction that applies their updates.
 
     import optax
     import diffquat.jax as dq
@@ -15,20 +15,25 @@ that applies their updates.
         updates, state = optimizer.update(grads, state, params)  # tangent vectors (..., 3)
         return dqo.apply_updates(params, updates), state  # R <- R exp(update): still rotations
 
-**Leaves.** Every leaf the transformations see is an array of rotations, told apart by its trailing
-shape: a shape ending in ``(3, 3)`` holds rotation matrices, any other shape ending in ``4`` holds unit
-quaternions (``scalar_first`` order, ``True`` by default: w, x, y, z); any other shape raises
-``ValueError`` naming the leaf. For a pytree of rotations and ordinary arrays, label the leaves and
-use ``optax.multi_transform``::
+**Leaves.** With ``manifold="so3"`` (the default) every leaf the transformations see is an array of
+rotations, told apart by its trailing shape: a shape ending in ``(3, 3)`` holds rotation matrices, any
+other shape ending in ``4`` holds unit quaternions (``scalar_first`` order, ``True`` by default: w, x,
+y, z); any other shape raises ``ValueError`` naming the leaf. With ``manifold="se3"`` every leaf is an
+array of rigid transforms ``(..., 4, 4)`` (``[[R, t], [0, 1]]``), whose updates are body twists
+``(rho, phi)`` ``(..., 6)``, translation first: a ``(..., 4, 4)`` leaf is quaternions under ``"so3"``, so
+the manifold is never guessed from the shape. For a pytree of rotations, poses and ordinary arrays,
+label the leaves and use ``optax.multi_transform``::
 
     optimizer = optax.multi_transform(
-        {"so3": dqo.riemannian_adam(1e-2), "euclidean": optax.adam(1e-3)},
-        {"R": "so3", "net": "euclidean"},  # or a function of the params giving such a tree
+        {"so3": dqo.riemannian_adam(1e-2), "se3": dqo.riemannian_adam(1e-2, manifold="se3"),
+         "euclidean": optax.adam(1e-3)},
+        {"R": "so3", "T": "se3", "net": "euclidean"},  # or a function of the params giving such a tree
     )
 
 and apply the updates with ``apply_updates``, which tells the leaves apart by the update's shape:
-a tangent update ``(..., 3)`` of a ``(..., 3, 3)`` or ``(..., 4)`` leaf is a step along the manifold,
-an update of the leaf's own shape is added (``optax.apply_updates``).
+a tangent update ``(..., 3)`` of a ``(..., 3, 3)`` or ``(..., 4)`` leaf, or ``(..., 6)`` of a ``(..., 4,
+4)`` leaf, is a step along the manifold, an update of the leaf's own shape is added
+(``optax.apply_updates``).
 
 **The math** (derived in ``diffquat._optim``, the same as ``diffquat.torch.optim``'s, so that the
 torch and jax optimisers take the same steps). Updates are body-frame rotation vectors ``w`` ``(...,
@@ -40,6 +45,12 @@ direction is along the first moment and the moments' body coordinates are their 
 transport. ``riemannian_momentum`` keeps a momentum buffer and transports it along each step
 (``v -> exp(-d / 2) v``). ``apply_updates`` retracts with the exponential map, ``R exp(d)`` /
 ``q exp(d)``, through the quaternion, so parameters stay orthonormal (unit) to a few ulps.
+
+Poses (``manifold="se3"``) take the steps of ``diffquat.torch.optim``'s ``"se3"`` groups: the tangent
+gradient ``(R^T G_t, vee(R^T G_R - G_R^T R))``, moments whose translation part is kept in the world
+frame (its parallel transport in ``R^3 x SO(3)`` is then the identity; this needs the params in
+``update``, as ``project_to_tangent`` does), Adam's second moment one number per part (translation,
+rotation), and the retraction ``T exp(d)`` (``se3_plus``' value, bottom row exact).
 
 Everything works under ``jit`` and ``vmap``, on any pytree, with learning-rate schedules (optax's
 ``ScalarOrSchedule``).
@@ -60,6 +71,7 @@ from .. import _optim
 from .._public import public_dir as _public_dir
 
 __all__ = [
+    "MANIFOLDS",
     "RiemannianMomentumState",
     "ScaleByRiemannianAdamState",
     "apply_updates",
@@ -75,7 +87,8 @@ __dir__ = _public_dir(globals())
 
 class ScaleByRiemannianAdamState(NamedTuple):
     """State of ``scale_by_riemannian_adam``: the step count, and per rotation leaf the first
-    moment ``(..., 3)``, the second ``(..., 1)`` and (amsgrad) its maximum ``(..., 1)``, else None."""
+    moment ``(..., 3)``, the second ``(..., 1)`` and (amsgrad) its maximum ``(..., 1)``, else None
+    (per pose leaf ``(..., 6)``, the translation part in the world frame, and ``(..., 2)``)."""
 
     # ``count``, as in optax's own states, where tools look the step count up by that name (it shadows
     # tuple.count, as there).
@@ -87,14 +100,33 @@ class ScaleByRiemannianAdamState(NamedTuple):
 
 class RiemannianMomentumState(NamedTuple):
     """State of ``riemannian_momentum``: the step count, and per rotation leaf the momentum buffer
-    ``(..., 3)`` at the current rotation (None without momentum)."""
+    ``(..., 3)`` at the current rotation (per pose leaf ``(..., 6)``, the translation part in the world
+    frame; None without momentum)."""
 
     count: Array  # type: ignore[assignment]  # optax's name (see ScaleByRiemannianAdamState)
     trace: optax.Updates
 
 
-def _kind(fname: str, path: Any, shape: tuple[int, ...]) -> str:
-    kind = _optim.rotation_kind(shape)
+MANIFOLDS = ("so3", "se3")
+"""The manifolds of the transformations' ``manifold`` argument: rotations, rigid transforms."""
+
+
+def _check_manifold(fname: str, manifold: str) -> None:
+    if manifold not in MANIFOLDS:
+        raise ValueError(
+            f"{fname}: manifold={manifold!r}; expected 'so3' (rotations) or 'se3' (rigid transforms); give "
+            "ordinary arrays an optax transformation of their own with optax.multi_transform"
+        )
+
+
+def _kind(fname: str, path: Any, shape: tuple[int, ...], manifold: str) -> str:
+    kind = _optim.parameter_kind(shape, manifold)
+    if kind is None and manifold == "se3":
+        raise ValueError(
+            f"{fname}: leaf {jax.tree_util.keystr(path)} has shape {shape}; expected rigid transforms "
+            "(..., 4, 4) (manifold 'se3'; for a pytree with other arrays, give those another "
+            "transformation with optax.multi_transform)"
+        )
     if kind is None:
         raise ValueError(
             f"{fname}: leaf {jax.tree_util.keystr(path)} has shape {shape}; expected rotation matrices "
@@ -104,40 +136,56 @@ def _kind(fname: str, path: Any, shape: tuple[int, ...]) -> str:
     return kind
 
 
-def _tangent_zeros(fname: str, params: optax.Params, last: int) -> optax.Updates:
-    """Zeros ``(*batch, last)`` of each rotation leaf's dtype (``last`` 3 for moments, 1 for second
-    moments)."""
+def _tangent_zeros(fname: str, params: optax.Params, manifold: str, second: bool = False) -> optax.Updates:
+    """Zeros of each leaf's dtype, the shape of its tangent vectors (``second``: of Adam's second
+    moments, ``(*batch, 1)`` per rotation, ``(*batch, 2)`` per pose)."""
 
     def zeros(path: Any, p: Array) -> Array:
         shape = tuple(p.shape)
-        batch = _optim.tangent_shape(shape, _kind(fname, path, shape))[:-1]
-        return jnp.zeros((*batch, last), p.dtype)
+        kind = _kind(fname, path, shape, manifold)
+        tangent = _optim.tangent_shape(shape, kind)
+        return jnp.zeros((*tangent[:-1], _optim.second_moment_size(kind)) if second else tangent, p.dtype)
 
     return jax.tree_util.tree_map_with_path(zeros, params)
 
 
-def _check_tangent(fname: str, updates: optax.Updates, moments: optax.Updates | None) -> None:
-    """Tangent vectors ``(..., 3)``, of the moments' shapes where there are moments (the shapes that
-    ``init`` gave them from the rotation leaves)."""
+def _check_tangent(fname: str, updates: optax.Updates, moments: optax.Updates | None, manifold: str) -> None:
+    """Tangent vectors ``(..., 3)`` (``(..., 6)`` on SE(3)), of the moments' shapes where there are
+    moments (the shapes that ``init`` gave them from the leaves)."""
+    size = 6 if manifold == "se3" else 3
     shapes = None if moments is None else [tuple(m.shape) for m in jax.tree.leaves(moments)]
     for k, (path, u) in enumerate(jax.tree_util.tree_leaves_with_path(updates)):
-        expected = "(..., 3)" if shapes is None or k >= len(shapes) else str(shapes[k])
-        if u.ndim == 0 or u.shape[-1] != 3 or (shapes is not None and tuple(u.shape) != shapes[k]):
+        expected = f"(..., {size})" if shapes is None or k >= len(shapes) else str(shapes[k])
+        if u.ndim == 0 or u.shape[-1] != size or (shapes is not None and tuple(u.shape) != shapes[k]):
             raise ValueError(
                 f"{fname}: update {jax.tree_util.keystr(path)} has shape {tuple(u.shape)}; expected tangent "
                 f"vectors {expected} (put project_to_tangent() before it)"
             )
 
 
-def project_to_tangent(*, scalar_first: bool = True) -> optax.GradientTransformation:
+def _poses(fname: str, params: optax.Params | None, tree: Any, manifold: str) -> list[Array | None]:
+    """Per leaf of the updates (of structure ``tree``), its pose on SE(3) (the params' leaf), else
+    None: the pose's rotation takes its moments between the body and the world frame."""
+    if manifold != "se3":
+        return [None] * tree.num_leaves
+    if params is None:
+        raise ValueError(f"{fname}: needs the params on SE(3): optimizer.update(grads, state, params)")
+    return [jnp.asarray(p) for p in tree.flatten_up_to(params)]
+
+
+def project_to_tangent(*, scalar_first: bool = True, manifold: str = "so3") -> optax.GradientTransformation:
     """Euclidean gradients of rotation leaves to tangent vectors ``(..., 3)``, the gradient of
     ``w -> f(R exp(w))`` (``f(q exp(w))``) at ``w = 0``: ``vee(R^T G - G^T R)`` for matrices ``(..., 3,
     3)``, ``vec(q* G) / 2`` for quaternions ``(..., 4)`` (exact for unit ``q``, and for any ``q`` under a
-    loss of the rotation only). Needs ``params`` in ``update``. Stateless.
+    loss of the rotation only). With ``manifold="se3"``, of pose leaves ``(..., 4, 4)`` to body twists
+    ``(..., 6)``, the gradient of ``w -> f(T exp(w))``: ``(R^T G_t, vee(R^T G_R - G_R^T R))``. Needs
+    ``params`` in ``update``. Stateless.
 
     Args:
         scalar_first: storage order of quaternion leaves.
+        manifold: ``"so3"`` (rotations) or ``"se3"`` (rigid transforms).
     """
+    _check_manifold("project_to_tangent", manifold)
 
     def update(
         updates: optax.Updates, state: optax.EmptyState, params: optax.Params | None = None
@@ -146,7 +194,7 @@ def project_to_tangent(*, scalar_first: bool = True) -> optax.GradientTransforma
             raise ValueError("project_to_tangent: needs the params: optimizer.update(grads, state, params)")
 
         def one(path: Any, g: Array, p: Array) -> Array:
-            kind = _kind("project_to_tangent", path, tuple(p.shape))
+            kind = _kind("project_to_tangent", path, tuple(p.shape), manifold)
             return _optim.tangent_gradient(jnp, p, g, kind, scalar_first)
 
         return jax.tree_util.tree_map_with_path(one, updates, params), state
@@ -155,7 +203,7 @@ def project_to_tangent(*, scalar_first: bool = True) -> optax.GradientTransforma
 
 
 def scale_by_riemannian_adam(
-    b1: float = 0.9, b2: float = 0.999, eps: float = 1e-8, *, amsgrad: bool = False
+    b1: float = 0.9, b2: float = 0.999, eps: float = 1e-8, *, amsgrad: bool = False, manifold: str = "so3"
 ) -> optax.GradientTransformation:
     """Adam's direction ``m_hat / (sqrt(v_hat) + eps)`` from tangent gradients ``(..., 3)`` (after
     ``project_to_tangent``), the step of ``diffquat.torch.optim.RiemannianAdam``.
@@ -167,33 +215,42 @@ def scale_by_riemannian_adam(
     transformation that turns the direction, they are still carried by a rotation-invariant
     transport, that of the body frame.)
 
+    On SE(3) (``manifold="se3"``; twists ``(..., 6)`` of pose leaves ``(..., 4, 4)``) the first moment
+    keeps its translation part in the world frame, where its transport is the identity, and the
+    second moment is one number per part, translation and rotation; ``update`` then needs the params,
+    to turn the direction back into the body frame.
+
     Args:
         b1: decay rate of the first moment.
         b2: decay rate of the second moment.
         eps: added to the square root of the second moment.
         amsgrad: keep the maximum of the second moment.
+        manifold: ``"so3"`` (rotations) or ``"se3"`` (rigid transforms).
     """
+    name = "scale_by_riemannian_adam"
+    _check_manifold(name, manifold)
 
     def init(params: optax.Params) -> ScaleByRiemannianAdamState:
-        name = "scale_by_riemannian_adam"
-        nu = _tangent_zeros(name, params, 1)
+        nu = _tangent_zeros(name, params, manifold, second=True)
         return ScaleByRiemannianAdamState(
-            jnp.zeros([], jnp.int32), _tangent_zeros(name, params, 3), nu, nu if amsgrad else None
+            jnp.zeros([], jnp.int32), _tangent_zeros(name, params, manifold), nu, nu if amsgrad else None
         )
 
     def update(
         updates: optax.Updates, state: ScaleByRiemannianAdamState, params: optax.Params | None = None
     ) -> tuple[optax.Updates, ScaleByRiemannianAdamState]:
-        del params
-        _check_tangent("scale_by_riemannian_adam", updates, state.mu)
+        _check_tangent(name, updates, state.mu, manifold)
         count = optax.safe_increment(state.count)
         # The moments have the structure of the updates (one leaf per rotation leaf, in order).
         leaves, tree = jax.tree.flatten(updates)
         mus, nus = jax.tree.leaves(state.mu), jax.tree.leaves(state.nu)
         maxima = jax.tree.leaves(state.nu_max) if amsgrad else [None] * len(leaves)
+        poses = _poses(name, params, tree, manifold)
         out = [
             _optim.adam(jnp, g, m, v, vm, count.astype(g.dtype), (b1, b2), eps, amsgrad, True)
-            for g, m, v, vm in zip(leaves, mus, nus, maxima, strict=True)
+            if pose is None
+            else _optim.pose_adam(jnp, pose, g, m, v, vm, count.astype(g.dtype), (b1, b2), eps, amsgrad)
+            for g, m, v, vm, pose in zip(leaves, mus, nus, maxima, poses, strict=True)
         ]
         direction, mu, nu, nu_max = ([o[k] for o in out] for k in range(4))
         new = ScaleByRiemannianAdamState(
@@ -213,6 +270,7 @@ def riemannian_momentum(
     *,
     dampening: float = 0.0,
     nesterov: bool = False,
+    manifold: str = "so3",
 ) -> optax.GradientTransformation:
     """SGD's update ``-lr * buffer`` (``torch.optim.SGD``'s momentum rule) from tangent gradients
     ``(..., 3)``, with the buffer carried to the new rotation by parallel transport along the update
@@ -224,27 +282,36 @@ def riemannian_momentum(
         momentum: momentum factor (0: the update is ``-lr * g``, no state).
         dampening: dampening of the momentum (from the second step on, as torch).
         nesterov: Nesterov momentum (needs ``momentum > 0`` and ``dampening == 0``).
+        manifold: ``"so3"`` (rotations) or ``"se3"`` (rigid transforms: the buffer's translation part is
+            kept in the world frame, transported by the identity; ``update`` then needs the params).
     """
+    name = "riemannian_momentum"
+    _check_manifold(name, manifold)
     if nesterov and (momentum <= 0 or dampening != 0):
         raise ValueError("riemannian_momentum: Nesterov momentum requires a momentum and zero dampening")
 
     def init(params: optax.Params) -> RiemannianMomentumState:
-        trace = _tangent_zeros("riemannian_momentum", params, 3) if momentum else None
+        trace = _tangent_zeros(name, params, manifold) if momentum else None
         return RiemannianMomentumState(jnp.zeros([], jnp.int32), trace)
 
     def update(
         updates: optax.Updates, state: RiemannianMomentumState, params: optax.Params | None = None
     ) -> tuple[optax.Updates, RiemannianMomentumState]:
-        del params
-        _check_tangent("riemannian_momentum", updates, state.trace)
+        _check_tangent(name, updates, state.trace, manifold)
         lr = learning_rate(state.count) if callable(learning_rate) else learning_rate
         count = optax.safe_increment(state.count)
         if not momentum:
             return jax.tree.map(lambda g: -lr * g, updates), RiemannianMomentumState(count, None)
         leaves, tree = jax.tree.flatten(updates)
+        first = state.count == 0
+        options = (lr, momentum, dampening, nesterov)
         out = [
-            _optim.momentum(jnp, g, b, state.count == 0, lr, momentum, dampening, nesterov, True)
-            for g, b in zip(leaves, jax.tree.leaves(state.trace), strict=True)
+            _optim.momentum(jnp, g, b, first, *options, True)
+            if pose is None
+            else _optim.pose_momentum(jnp, pose, g, b, first, *options)
+            for g, b, pose in zip(
+                leaves, jax.tree.leaves(state.trace), _poses(name, params, tree, manifold), strict=True
+            )
         ]
         steps, trace = ([o[k] for o in out] for k in range(2))
         new = RiemannianMomentumState(count, jax.tree.unflatten(tree, trace))
@@ -261,11 +328,13 @@ def riemannian_adam(
     *,
     amsgrad: bool = False,
     scalar_first: bool = True,
+    manifold: str = "so3",
 ) -> optax.GradientTransformation:
-    """Adam on SO(3): ``optax.chain(project_to_tangent(), scale_by_riemannian_adam(...),
+    """Adam on SO(3) (or SE(3)): ``optax.chain(project_to_tangent(), scale_by_riemannian_adam(...),
     optax.scale_by_learning_rate(learning_rate))``; the same steps as
     ``diffquat.torch.optim.RiemannianAdam``. A step turns a rotation by about ``learning_rate``
-    radians while the gradient is steady. Apply the updates with ``apply_updates``.
+    radians while the gradient is steady (and moves a pose's translation by about as much, in its
+    units). Apply the updates with ``apply_updates``.
 
     Args:
         learning_rate: a number or a schedule of the step count.
@@ -274,10 +343,12 @@ def riemannian_adam(
         eps: added to the square root of the second moment.
         amsgrad: keep the maximum of the second moment.
         scalar_first: storage order of quaternion leaves.
+        manifold: ``"so3"`` (rotations) or ``"se3"`` (rigid transforms ``(..., 4, 4)``).
     """
+    _check_manifold("riemannian_adam", manifold)
     return optax.chain(
-        project_to_tangent(scalar_first=scalar_first),
-        scale_by_riemannian_adam(b1, b2, eps, amsgrad=amsgrad),
+        project_to_tangent(scalar_first=scalar_first, manifold=manifold),
+        scale_by_riemannian_adam(b1, b2, eps, amsgrad=amsgrad, manifold=manifold),
         optax.scale_by_learning_rate(learning_rate),
     )
 
@@ -289,8 +360,9 @@ def riemannian_sgd(
     dampening: float = 0.0,
     nesterov: bool = False,
     scalar_first: bool = True,
+    manifold: str = "so3",
 ) -> optax.GradientTransformation:
-    """SGD on SO(3) with momentum: ``optax.chain(project_to_tangent(), riemannian_momentum(...))``;
+    """SGD on SO(3) (or SE(3)) with momentum: ``optax.chain(project_to_tangent(), riemannian_momentum(...))``;
     the same steps as ``diffquat.torch.optim.RiemannianSGD``. Apply the updates with
     ``apply_updates``.
 
@@ -300,10 +372,14 @@ def riemannian_sgd(
         dampening: dampening of the gradient's share in the momentum.
         nesterov: Nesterov momentum.
         scalar_first: storage order of quaternion leaves.
+        manifold: ``"so3"`` (rotations) or ``"se3"`` (rigid transforms ``(..., 4, 4)``).
     """
+    _check_manifold("riemannian_sgd", manifold)
     return optax.chain(
-        project_to_tangent(scalar_first=scalar_first),
-        riemannian_momentum(learning_rate, momentum, dampening=dampening, nesterov=nesterov),
+        project_to_tangent(scalar_first=scalar_first, manifold=manifold),
+        riemannian_momentum(
+            learning_rate, momentum, dampening=dampening, nesterov=nesterov, manifold=manifold
+        ),
     )
 
 
@@ -314,6 +390,8 @@ def apply_updates(params: optax.Params, updates: optax.Updates, *, scalar_first:
       value of ``so3_plus`` (computed through the quaternion, so the result is orthonormal to a few
       ulps whatever rounding ``R`` carries: parameters do not drift off SO(3));
     - an update ``(..., 3)`` of a leaf ``(..., 4)``: ``quaternion_plus(q, d)``, a unit quaternion;
+    - an update ``(..., 6)`` of a leaf ``(..., 4, 4)``: ``se3_plus(T, d)``, ``T exp(d)`` (its rotation
+      through the quaternion likewise; bottom row exact);
     - an update of the leaf's own shape: ``p + u`` (``optax.apply_updates``), for ordinary arrays;
     - a None update leaves the leaf as it is; any other pair of shapes raises ``ValueError``.
 
@@ -333,12 +411,14 @@ def apply_updates(params: optax.Params, updates: optax.Updates, *, scalar_first:
         shape = tuple(p.shape)
         if tuple(u.shape) == shape:
             return (p + u).astype(p.dtype)
-        kind = _optim.rotation_kind(shape)
+        # A (..., 4, 4) leaf is quaternions or poses; their tangent shapes, (..., 4, 3) and (..., 6), differ.
+        kind = _optim.parameter_kind(shape, "se3" if u.ndim and u.shape[-1] == 6 else "so3")
         if kind is None or tuple(u.shape) != _optim.tangent_shape(shape, kind):
             raise ValueError(
                 f"apply_updates: leaf {jax.tree_util.keystr(path)} of shape {shape} has an update of shape "
                 f"{tuple(u.shape)}; expected the leaf's shape, or tangent vectors (..., 3) of rotation "
-                "matrices (..., 3, 3) or quaternions (..., 4) of the same batch shape"
+                "matrices (..., 3, 3) or quaternions (..., 4), or twists (..., 6) of rigid transforms (..., "
+                "4, 4), of the same batch shape"
             )
         return _optim.retract(_dq, jnp, p, u, kind, scalar_first).astype(p.dtype)
 
