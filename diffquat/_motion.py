@@ -1,0 +1,572 @@
+"""Rotations in time, over ``xp``: angular velocity and acceleration of a quaternion trajectory, the
+quaternion derivative of a rate, exact integration of a rate, rates from samples, Shoemake's SQUAD,
+and uniform cumulative B-splines on SO(3) and SE(3) with their exact body rates.
+
+Conventions, written once (each docstring repeats the part its function needs):
+
+- Hamilton quaternions, scalar first by default (``scalar_first=False``: (x, y, z, w)), as everywhere
+  in diffquat; a rotation matrix acts on column vectors (``R(q) v = q v q*``).
+- Body-frame angular velocity ``w_b = 2 vec(q^-1 q')`` (``hat(w_b) = R^T R'``, what a gyroscope
+  strapped to the body reads; scipy's ``RotationSpline`` rates, basalt's and Sophus' splines), and
+  space-frame ``w_s = 2 vec(q' q^-1) = R w_b`` (``hat(w_s) = R' R^T``). ``frame="body"`` is the
+  default, ``frame="space"`` the other; their rates are related by ``w_s = R w_b`` and, since
+  ``R' w_b = R (w_b x w_b) = 0``, also ``w_s' = R w_b'``.
+- Twists of SE(3) are translation first, ``(v, w)``, as in ``diffquat._se3``: the body twist of a pose
+  trajectory ``T(u)`` is ``vee(T^-1 dT/du)``, ``v = R^T dp/du`` and ``w = w_b``.
+- Time: every function here takes times already made relative and normalised (a step ``dt``, a knot
+  parameter ``t`` = knot index + fraction, a spline parameter ``u`` = segment index + fraction). Compute
+  them from absolute timestamps in float64 or in integers (nanoseconds) *before* casting to the compute
+  dtype: float32 cannot tell apart two instants 100 s apart at a Unix timestamp (its spacing there is
+  128 s), and even in float64 the fraction of a knot interval loses the digits the timestamp holds.
+  Rates with respect to a normalised spline parameter ``u = (t - t0) / h`` convert to physical time
+  as ``w = w_u / h`` and ``w' = w_u' / h^2``.
+
+Sign of quaternions: the logarithms taken here are shortest-arc (``quaternion_to_axis_angle``'s
+canonical sign), so ``q`` and ``-q`` give the same rates from samples and the same splines. Consecutive
+samples, knots and control points must be less than a half-turn apart (the shortest arc between them
+is then unique); at exactly a half-turn the logarithm takes the canonical sign and jumps there, with a
+finite gradient, as ``so3_log`` does.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from fractions import Fraction
+from typing import Any
+
+from ._algebra import (
+    axis_angle_to_matrix,
+    hamilton,
+    match_rank,
+    matrix_to_axis_angle,
+    quaternion_invert,
+    quaternion_slerp,
+)
+from ._core import (
+    Conversion,
+    join_quaternion,
+    matrix_to_quaternion,
+    normalize_quaternion,
+    op,
+    split_quaternion,
+    unit_quaternion_to_matrix,
+    wxyz_to_xyzw,
+    xyzw_to_wxyz,
+)
+from ._lie import quaternion_minus, quaternion_plus
+from ._se3 import se3_ad, se3_adjoint, se3_compose, se3_exp, se3_inverse, se3_minus
+
+FRAMES = ("body", "space")
+
+
+def check_frame(fname: str, frame: str) -> bool:
+    """Whether ``frame`` is ``"body"``; ``ValueError`` naming ``fname`` unless it is ``"body"`` or
+    ``"space"``. A Python check of a static option: it traces."""
+    if frame not in FRAMES:
+        raise ValueError(f"{fname}: expected frame to be 'body' or 'space', got {frame!r}")
+    return frame == "body"
+
+
+# ---------------------------------------------------------------------------------------------------
+# Rates of a quaternion trajectory
+
+
+def _relative(xp: Any, q: Any, p: Any, body: bool, scalar_first: bool) -> tuple[Any, Any, Any, Any]:
+    """Components (w, x, y, z) of ``q^-1 p`` (body) or ``p q^-1`` (space), ``q^-1 = q* / |q|^2``
+    (``quaternion_invert``: scaled by the largest component, the zero quaternion giving 0)."""
+    inv = split_quaternion(quaternion_invert(xp, q, scalar_first=scalar_first), scalar_first)
+    other = split_quaternion(p, scalar_first)
+    return hamilton(inv, other) if body else hamilton(other, inv)
+
+
+@op(q=(4,), q_dot=(4,))
+def angular_velocity(xp: Any, q: Any, q_dot: Any, *, frame: str = "body", scalar_first: bool = True) -> Any:
+    """The angular velocity of a quaternion trajectory from its derivative: ``w_b = 2 vec(q^-1 q')``
+    (``frame="body"``, ``hat(w_b) = R^T R'``) or ``w_s = 2 vec(q' q^-1) = R w_b`` (``frame="space"``).
+
+    Why ``q^-1 = q* / |q|^2`` and not ``q*``: the rotation of ``q`` is that of ``n = q / |q|``, and
+    ``n* n' = q* q' / |q|^2 - (q . q') / |q|^2``, whose second term is real; so ``2 vec(q* q') / |q|^2``
+    is exactly the angular velocity of the rotation ``R(q(t))`` for every non-zero norm, whatever the
+    radial part of ``q'`` (which changes the norm, not the rotation). For a unit ``q`` it is the
+    textbook ``2 vec(q* q')``.
+
+    Args:
+        q: quaternions, shape ``(..., 4)``, any non-zero norm; the zero quaternion gives the zero
+            vector, with a finite gradient.
+        q_dot: their time derivatives, shape ``(..., 4)``, any (the radial part is ignored); the batch
+            shapes broadcast.
+        frame: ``"body"`` (the default) or ``"space"``; anything else raises ``ValueError``.
+        scalar_first: storage order of ``q`` and ``q_dot``.
+
+    Returns:
+        Shape ``(..., 3)``, in radians per unit of time of ``q_dot``. ``angular_velocity(q,
+        quaternion_derivative(q, w))`` is ``w`` for every non-zero ``q``.
+    """
+    body = check_frame("angular_velocity", frame)
+    q, q_dot = match_rank(xp, q, q_dot)
+    _, x, y, z = _relative(xp, q, q_dot, body, scalar_first)
+    return 2.0 * xp.stack([x, y, z], axis=-1)
+
+
+@op(q=(4,), omega=(3,))
+def quaternion_derivative(
+    xp: Any, q: Any, omega: Any, *, frame: str = "body", scalar_first: bool = True
+) -> Any:
+    """The time derivative of a quaternion turning at an angular velocity: ``q' = q (0, w_b) / 2``
+    (``frame="body"``) or ``q' = (0, w_s) q / 2`` (``frame="space"``).
+
+    Args:
+        q: quaternions, shape ``(..., 4)``, any norm; ``q`` is used as it is (not normalised), so the
+            derivative is the one that keeps ``|q|`` constant (``q . q' = 0``) and turns ``R(q)`` at
+            ``w``. The zero quaternion gives 0.
+        omega: angular velocities, shape ``(..., 3)``; the batch shapes broadcast.
+        frame: ``"body"`` (the default) or ``"space"``; anything else raises ``ValueError``.
+        scalar_first: storage order of ``q`` and of the result.
+
+    Returns:
+        Shape ``(..., 4)``: the inverse of ``angular_velocity`` in its second argument for every
+        non-zero ``q`` (up to the radial part, which this one leaves out).
+    """
+    body = check_frame("quaternion_derivative", frame)
+    q, omega = match_rank(xp, q, omega)
+    half = 0.5 * omega
+    pure = (xp.zeros_like(half[..., 0]), half[..., 0], half[..., 1], half[..., 2])
+    parts = split_quaternion(q, scalar_first)
+    return join_quaternion(xp, *(hamilton(parts, pure) if body else hamilton(pure, parts)), scalar_first)
+
+
+@op(q=(4,), q_dot=(4,), q_ddot=(4,))
+def angular_acceleration(
+    xp: Any, q: Any, q_dot: Any, q_ddot: Any, *, frame: str = "body", scalar_first: bool = True
+) -> Any:
+    """The angular acceleration of a quaternion trajectory from its first two derivatives: the time
+    derivative of ``angular_velocity(q, q_dot)`` in the same frame.
+
+    Derivation (body): with ``a = q^-1 q'``, ``w_b = 2 vec(a)`` and ``a' = -(q^-1 q' q^-1) q' +
+    q^-1 q'' = q^-1 q'' - a a``, whose vector part is ``vec(q^-1 q'') - 2 a_w vec(a)``, so
+    ``w_b' = 2 vec(q^-1 q'') - 4 a_w vec(a)``, ``a_w = (q . q') / |q|^2``. For a unit ``q`` (so
+    ``q . q' = 0``) this is ``2 vec(q* q'')``: the term ``2 vec(q'* q')`` of the product rule is real.
+    Space: the same with ``b = q' q^-1`` (``b_w = a_w``), ``w_s' = 2 vec(q'' q^-1) - 4 b_w vec(b)``,
+    which equals ``R w_b'`` (``d/dt (R w_b) = R (w_b x w_b) + R w_b'``).
+
+    Args:
+        q: quaternions, shape ``(..., 4)``, any non-zero norm (the rates are those of ``R(q(t))``, as in
+            ``angular_velocity``); the zero quaternion gives 0.
+        q_dot: first time derivatives, shape ``(..., 4)``.
+        q_ddot: second time derivatives, shape ``(..., 4)``; the batch shapes broadcast.
+        frame: ``"body"`` (the default) or ``"space"``; anything else raises ``ValueError``.
+        scalar_first: storage order of the three.
+
+    Returns:
+        Shape ``(..., 3)``, in radians per unit of time squared.
+    """
+    body = check_frame("angular_acceleration", frame)
+    q, q_dot, q_ddot = match_rank(xp, q, q_dot, q_ddot)
+    aw, ax, ay, az = _relative(xp, q, q_dot, body, scalar_first)
+    _, cx, cy, cz = _relative(xp, q, q_ddot, body, scalar_first)
+    k = 4.0 * aw
+    return xp.stack([2.0 * cx - k * ax, 2.0 * cy - k * ay, 2.0 * cz - k * az], axis=-1)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Integration, and rates from samples
+
+
+@op(q=(4,), omega=(3,), dt=())
+def integrate_angular_velocity(
+    xp: Any, q: Any, omega: Any, dt: Any, *, frame: str = "body", scalar_first: bool = True
+) -> Any:
+    """One step of an orientation turning at a constant angular velocity: ``q exp(w_b dt)``
+    (``frame="body"``) or ``exp(w_s dt) q`` (``frame="space"``), ``exp`` the unit quaternion of a
+    rotation vector (``quaternion_plus``). Exact for a rate constant over the step (no Euler or
+    Runge-Kutta error, no drift off the unit sphere), for every step length.
+
+    Args:
+        q: quaternions, shape ``(..., 4)``, any non-zero norm (normalised first; the zero quaternion is
+            the identity).
+        omega: angular velocities, shape ``(..., 3)``.
+        dt: time steps, shape ``(...)`` (one per rotation; a 0-dimensional array for all); the batch
+            shapes of the three broadcast.
+        frame: ``"body"`` (the default) or ``"space"``; anything else raises ``ValueError``.
+        scalar_first: storage order of ``q`` and of the result.
+
+    Returns:
+        Unit quaternions, shape ``(..., 4)``, the sign the product's (continuous in ``w dt``; not
+        standardised). ``angular_velocity_from_quaternions`` of ``q`` and this step gives ``w`` back
+        while ``|w dt| < pi``.
+    """
+    body = check_frame("integrate_angular_velocity", frame)
+    omega, step = match_rank(xp, omega, dt[..., None])
+    side = "right" if body else "left"
+    return quaternion_plus(xp, q, omega * step, side=side, scalar_first=scalar_first)
+
+
+def angular_velocity_from_quaternions(
+    xp: Any, q: Any, dt: Any, *, frame: str = "body", scalar_first: bool = True
+) -> Any:
+    """The constant angular velocity between consecutive samples of an orientation:
+    ``log(q_k^-1 q_k+1) / dt_k`` (``frame="body"``) or ``log(q_k+1 q_k^-1) / dt_k`` (``frame="space"``),
+    along the sequence axis -2.
+
+    Exact for a rate constant over each interval with ``|w dt| < pi`` (the inverse of
+    ``integrate_angular_velocity``); a central difference of quaternions is biased by a relative
+    ``(|w| dt)^2 / 24`` and breaks where the samples change sign. The logarithm is the shortest arc
+    (``quaternion_minus``): ``q_k`` and ``-q_k`` give the same rates, so sign flips between samples
+    change nothing.
+
+    Args:
+        q: samples, shape ``(..., T, 4)``, any non-zero norms (the zero quaternion is the identity).
+        dt: the time steps, a 0-dimensional array (one step for all) or shape ``(..., T - 1)`` (one per
+            interval), broadcasting against ``q``'s batch. Differences of timestamps: take them in
+            float64 or integers before casting (see the module's note on time).
+        frame: ``"body"`` (the default) or ``"space"``; anything else raises ``ValueError``.
+        scalar_first: storage order of ``q``.
+
+    Returns:
+        Shape ``(..., T - 1, 3)`` (empty for ``T <= 1``). Where two samples are exactly a half-turn
+        apart the rate takes ``quaternion_minus``'s sign and jumps there.
+    """
+    # Not registered with ``op``: ``dt``'s trailing shape is ``(T - 1,)`` against ``q``'s ``(T, 4)``,
+    # which the registry's one size N per function cannot state; the binding validates it.
+    body = check_frame("angular_velocity_from_quaternions", frame)
+    side = "right" if body else "left"
+    log = quaternion_minus(xp, q[..., 1:, :], q[..., :-1, :], side=side, scalar_first=scalar_first)
+    log, step = match_rank(xp, log, dt[..., None])
+    return log / step
+
+
+# ---------------------------------------------------------------------------------------------------
+# Segments and gathers
+
+
+def _segment(xp: Any, u: Any, segments: int) -> tuple[Any, Any]:
+    """The segment index ``i`` (as a float, in [0, segments - 1]) and the fraction ``s`` in [0, 1] of
+    parameters ``u`` clamped to [0, segments]: ``u = i + s``, with the end ``u = segments`` in the last
+    segment at ``s = 1``. The index is a selection (a zero derivative), the fraction carries ``u``'s.
+
+    A NaN parameter takes segment 0 (an index must be in range on every backend: numpy and torch
+    raise on one that is not) and keeps its NaN in the fraction, so the values at it are NaN."""
+    uc = xp.clip(u, 0.0, float(segments))
+    # uc >= 0 is False only where uc is NaN (the clip has put every number in range)
+    i = xp.clip(xp.floor(xp.where(uc >= 0.0, uc, 0.0)), 0.0, float(segments - 1))
+    return i, uc - i
+
+
+def _gather(xp: Any, x: Any, index: Any, trailing: int) -> Any:
+    """``x[..., index[..., j], *rest]``: the entries of ``x`` ``(B..., K, *rest)`` (``trailing`` axes
+    in ``rest``) at integer-valued float positions ``index`` ``(S..., J)`` along its axis of size K,
+    batch shapes broadcast: ``(N..., J, *rest)``. ``take_along_axis`` (numpy, jax) or torch's
+    ``take_along_dim``, which differentiate into a scatter-add onto the gathered entries only."""
+    take = getattr(xp, "take_along_axis", None)
+    astype = getattr(xp, "astype", None)
+    # torch's take_along_dim wants int64 (it has no namespace astype); numpy and jax int32 (K < 2^31,
+    # and int64 is not available to jax without x64)
+    ints = index.long() if astype is None else astype(index, xp.int32)
+    ints = xp.reshape(ints, (*ints.shape, *(1,) * trailing))
+    x, ints = match_rank(xp, x, ints)
+    axis = -1 - trailing
+    return xp.take_along_dim(x, ints, dim=axis) if take is None else take(x, ints, axis=axis)
+
+
+def _consecutive(xp: Any, i: Any, count: int) -> Any:
+    """``(i, i + 1, ..., i + count - 1)`` along a new last axis: ``(S..., count)``."""
+    return xp.stack([i + float(j) for j in range(count)], axis=-1)
+
+
+# ---------------------------------------------------------------------------------------------------
+# SQUAD
+
+
+@op(q=(-1, 4), t=())
+def quaternion_squad(xp: Any, q: Any, t: Any, *, scalar_first: bool = True) -> Any:
+    """Shoemake's spherical quadrangle interpolation (SQUAD, 1987) through knots ``q_0 ... q_K-1`` at
+    parameters ``t`` = knot index + fraction.
+
+    On segment ``i`` (``t = i + h``, ``h`` in [0, 1]):
+    ``squad = slerp(slerp(q_i, q_i+1, h), slerp(s_i, s_i+1, h), 2 h (1 - h))`` with the inner control
+    points ``s_i = q_i exp(-(log(q_i^-1 q_i+1) + log(q_i^-1 q_i-1)) / 4)`` (``exp``, ``log`` of rotation
+    vectors; ``log(q_i^-1 q_i-1) = -log(q_i-1^-1 q_i)``, shortest arcs), and the end knots their own
+    controls (``s_0 = q_0``, ``s_K-1 = q_K-1``). It passes through every knot, its tangent is continuous
+    at the inner knots (C1, not C2: a B-spline is C2, see ``so3_bspline``), and where the knots lie
+    equally spaced on one geodesic every ``s_i = q_i`` and it is the constant-speed slerp along it.
+
+    Knot signs: the knots are normalised, then each is flipped into the hemisphere of the one before
+    (a cumulative product of the signs of consecutive dot products, no loop over the knots), so the
+    returned quaternion is continuous in ``t`` across knots, not only its rotation.
+
+    Args:
+        q: knots, shape ``(..., K, 4)``, K >= 2 (fewer raises ``ValueError``), any non-zero norms (the
+            zero quaternion is the identity). Consecutive knots less than a half-turn apart.
+        t: parameters, shape ``(...)``, broadcasting against the knots' batch shape (knots ``(B, K, 4)``
+            at ``t`` of shape ``(N, 1)`` give ``(N, B, 4)``). Clamped to [0, K - 1]: outside, the end
+            knots. A knot index plus a fraction: compute it from timestamps in float64 or integers
+            before casting (see the module's note on time).
+        scalar_first: storage order of ``q`` and of the result.
+
+    Returns:
+        Unit quaternions, shape ``(..., 4)``; at ``t = k`` the knot ``q_k``, normalised, with the sign
+        made consistent with ``q_0``.
+    """
+    count = q.shape[-2]
+    if count < 2:
+        raise ValueError(f"quaternion_squad: expected at least 2 knots, got q of shape {tuple(q.shape)}")
+    if not scalar_first:
+        q = xyzw_to_wxyz(xp, q)
+    q = normalize_quaternion(xp, q)
+    dots = xp.sum(q[..., :-1, :] * q[..., 1:, :], axis=-1)
+    one = xp.ones_like(dots)
+    parity = xp.cumprod(xp.where(dots < 0.0, -one, one), axis=-1)  # constants: no derivative
+    q = q * xp.concat([one[..., :1], parity], axis=-1)[..., None]
+    # d_k = log(q_k^-1 q_k+1), k = 0 .. K-2; inner control k: q_k exp((d_k-1 - d_k) / 4)
+    d = quaternion_minus(xp, q[..., 1:, :], q[..., :-1, :])
+    zero = xp.zeros_like(d[..., :1, :])
+    correction = xp.concat([zero, 0.25 * (d[..., :-1, :] - d[..., 1:, :]), zero], axis=-2)
+    s = quaternion_plus(xp, q, correction)
+    i, h = _segment(xp, t, count - 1)
+    pair = _consecutive(xp, i, 2)
+    knots, controls = _gather(xp, q, pair, 1), _gather(xp, s, pair, 1)
+    outer = quaternion_slerp(xp, knots[..., 0, :], knots[..., 1, :], h)
+    inner = quaternion_slerp(xp, controls[..., 0, :], controls[..., 1, :], h)
+    out = quaternion_slerp(xp, outer, inner, 2.0 * h * (1.0 - h))
+    return out if scalar_first else wxyz_to_xyzw(xp, out)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Cumulative B-splines
+
+
+def _cumulative_basis(order: int) -> list[list[Fraction]]:
+    """The cumulative basis matrix of the uniform B-spline of ``order`` (degree ``order - 1``), exactly:
+    row ``j`` holds the coefficients of ``B~_j(s) = sum_{l >= j} B_l(s)`` in powers ``s^0 ... s^(k-1)``,
+    ``B_l`` the blending function of control point ``i + l`` on segment ``i``.
+
+    The blending matrix is Qin's closed form ("General matrix representations for B-splines", 2000):
+    ``m_{n, l} = C(k-1, n) / (k-1)! sum_{m=l}^{k-1} (-1)^(m-l) C(k, m-l) (k-1-m)^(k-1-n)`` (power ``n``,
+    control ``l``; ``0^0 = 1``), so for order 4 ``B~ = [[6, 0, 0, 0], [5, 3, -3, 1], [1, 3, 3, -2],
+    [0, 0, 0, 1]] / 6``. Row 0 is ``(1, 0, ..., 0)``: the basis is a partition of unity. Python
+    fractions of the static order, a few dozen operations per call."""
+    k = order
+    blend = [
+        [
+            Fraction(math.comb(k - 1, n), math.factorial(k - 1))
+            * sum(
+                (-1) ** (m - col) * math.comb(k, m - col) * (k - 1 - m) ** (k - 1 - n) for m in range(col, k)
+            )
+            for n in range(k)
+        ]
+        for col in range(k)
+    ]
+    return [[sum((blend[l][n] for l in range(j, k)), Fraction(0)) for n in range(k)] for j in range(k)]
+
+
+def _polynomial(s: Any, coefficients: list[Fraction]) -> Any:
+    """Horner's evaluation of ``sum_n c_n s^n`` (``c`` in increasing powers, at least one)."""
+    out = float(coefficients[-1]) + 0.0 * s
+    for c in coefficients[-2::-1]:
+        out = out * s + float(c)
+    return out
+
+
+def _basis(xp: Any, s: Any, order: int) -> list[tuple[Any, Any, Any]]:
+    """``(lambda_j, lambda_j', lambda_j'')`` for ``j = 1 .. order - 1``: the cumulative basis functions
+    at the fractions ``s`` and their first and second derivatives in ``s``."""
+    out = []
+    for row in _cumulative_basis(order)[1:]:
+        first = [n * c for n, c in enumerate(row)][1:]
+        second = [n * c for n, c in enumerate(first)][1:] or [Fraction(0)]
+        out.append((_polynomial(s, row), _polynomial(s, first), _polynomial(s, second)))
+    return out
+
+
+def _check_spline(fname: str, shape: tuple[int, ...], trailing: int, order: int) -> int:
+    """The number of control points; ``ValueError`` for an order below 2 or fewer points than it."""
+    if order < 2:
+        raise ValueError(f"{fname}: expected order >= 2, got {order}")
+    count = shape[-1 - trailing]
+    if count < order:
+        raise ValueError(
+            f"{fname}: expected at least order = {order} control points, got control of shape {shape}"
+        )
+    return count
+
+
+def _scaled(xp: Any, factor: Any, v: Any) -> Any:
+    """``factor[..., None] * v`` with ``factor`` ``(S...)`` and ``v`` ``(N..., n)``."""
+    f, v = match_rank(xp, factor[..., None], v)
+    return f * v
+
+
+def _recursion(
+    xp: Any,
+    first: Any,
+    d: Any,
+    s: Any,
+    order: int,
+    *,
+    exp: Callable[[Any], Any],
+    compose: Callable[[Any, Any], Any],
+    transport: Callable[[Any, Any], Any],
+    bracket: Callable[[Any, Any], Any],
+) -> tuple[Any, Any, Any]:
+    """Sommer et al.'s recursion on one group: the value ``first exp(lambda_1 d_1) ...`` and its body
+    rate ``V`` and acceleration ``V'``, from the first control point of the segment ``first``
+    ``(N..., n, n)``, the increments ``d`` ``(N..., order - 1, m)`` and the fractions ``s`` ``(S...)``.
+
+    ``exp`` maps a tangent to the group, ``compose`` multiplies, ``transport(A, v)`` is ``Ad(A^-1) v``
+    and ``bracket(a, b)`` is ``ad(a) b``. Each step ``j`` appends ``A_j = exp(lambda_j d_j)``:
+    ``V_j = Ad(A_j^-1) V_j-1 + lambda_j' d_j`` (the body rate of a product) and, differentiating it
+    with ``d/ds Ad(A_j^-1) = -ad(lambda_j' d_j) Ad(A_j^-1)``,
+    ``V_j' = Ad(A_j^-1) V_j-1' + lambda_j'' d_j + ad(V_j) (lambda_j' d_j)``. At ``j = 1`` (``V_0 = 0``)
+    the bracket is ``ad(V_1) V_1 = 0``, and the step starts the rates."""
+    value, rate, accel = first, None, None
+    for j, (lam, lam_dot, lam_ddot) in enumerate(_basis(xp, s, order)):
+        dj = d[..., j, :]
+        step = exp(_scaled(xp, lam, dj))
+        value = compose(value, step)
+        step_rate, step_accel = _scaled(xp, lam_dot, dj), _scaled(xp, lam_ddot, dj)
+        if j == 0:
+            rate, accel = step_rate, step_accel
+        else:
+            rate = transport(step, rate) + step_rate
+            accel = transport(step, accel) + step_accel + bracket(rate, step_rate)
+    return value, rate, accel
+
+
+_SPLINE_DOC = """
+    The spline (Kim, Kim and Shin, "A general construction scheme for unit quaternion curves with
+    simple high order derivatives", SIGGRAPH 1995; Sommer, Usenko, Schubert, Demmel and Cremers,
+    "Efficient Derivative Computation for Cumulative B-Splines on Lie Groups", CVPR 2020): on segment
+    ``i`` (``u = i + s``, ``s`` in [0, 1]) of order ``k``,
+    ``{X}(u) = {X}_i exp(lambda_1(s) d_1) ... exp(lambda_k-1(s) d_k-1)`` with the increments
+    ``d_j = log({X}_i+j-1^-1 {X}_i+j)`` and ``lambda_j`` the cumulative basis of the uniform B-spline
+    (:func:`_cumulative_basis`). The rates follow Sommer et al.'s recursion for the body velocity
+    and acceleration (as basalt's ``so3_spline.h``), exact, no finite differences
+    (:func:`_recursion`): with ``A_j = exp(lambda_j d_j)``,
+    ``V_j = {Ad} V_j-1 + lambda_j' d_j`` and ``V_j' = {Ad} V_j-1' + lambda_j'' d_j + {ad}``, from
+    ``V_0 = V_0' = 0``; the rate of the spline is ``V_k-1``.
+    The spline is C^(k-2) in ``u``: order 4 (cubic) has its rate and acceleration continuous across
+    segments. It does not pass through its control points (a B-spline approximates them), but a
+    control polygon on one geodesic with equal steps gives the constant-rate motion along it.
+
+    Time: ``u`` is segment index + fraction, segment ``i`` spanning ``u`` in [i, i + 1] and reading
+    control points ``i .. i + k - 1``; ``u`` is clamped to [0, K - k + 1], and outside that range the
+    value and both rates are those at the nearest end (held, not extrapolated). The rates are with
+    respect to ``u``: for knots ``h`` seconds apart, ``w / h`` and ``w' / h^2``. Compute ``u`` from
+    timestamps in float64 or integers before casting (see the module's note on time).
+
+    Increments are shortest-arc logarithms: consecutive control rotations less than a half-turn apart
+    (at exactly a half-turn the logarithm takes ``so3_log``'s sign). Where they coincide (a static
+    trajectory) everything is finite and exact, derivatives included (the exponential and logarithm
+    are series there). Gradients with respect to the control points and ``u`` are those of the
+    formula.
+"""
+
+
+@op(control=(-1, 3, 3), u=())
+def so3_bspline(
+    xp: Any,
+    control: Any,
+    u: Any,
+    *,
+    order: int = 4,
+    to_matrix: Conversion = unit_quaternion_to_matrix,
+    to_quaternion: Conversion = matrix_to_quaternion,
+) -> tuple[Any, Any, Any]:
+    """A uniform cumulative B-spline of rotation matrices, with its exact body angular velocity and
+    acceleration.
+
+    Args:
+        control: control rotations, shape ``(..., K, 3, 3)``, K >= order (fewer raises
+            ``ValueError``). The first of a segment is multiplied as it is; the increments are taken
+            through ``matrix_to_quaternion`` (a matrix slightly off SO(3) reads as a nearby rotation).
+        u: spline parameters, shape ``(...)``, broadcasting against the control points' batch shape
+            (control ``(B, K, 3, 3)`` at ``u`` of shape ``(N, 1)`` gives ``(N, B, ...)``).
+        order: the spline's order ``k`` >= 2 (degree ``k - 1``; 4 is cubic, C2); static.
+
+    Returns:
+        ``(rotation, omega, omega_dot)``: rotation matrices ``R(u)``, shape ``(..., 3, 3)``; the body
+        angular velocity ``w_b = vee(R^T dR/du)``, shape ``(..., 3)``; and its derivative
+        ``dw_b/du``, shape ``(..., 3)``. The space-frame rates are ``R w_b`` and ``R w_b'``.
+    """
+    count = _check_spline("so3_bspline", tuple(control.shape), 2, order)
+    relative = xp.matmul(xp.swapaxes(control[..., :-1, :, :], -1, -2), control[..., 1:, :, :])
+    increments = matrix_to_axis_angle(xp, relative, to_quaternion=to_quaternion)  # (B..., K - 1, 3)
+    i, s = _segment(xp, u, count - order + 1)
+    rotation = _gather(xp, control, i[..., None], 2)[..., 0, :, :]
+    d = _gather(xp, increments, _consecutive(xp, i, order - 1), 1)
+
+    def transport(step: Any, v: Any) -> Any:  # Ad(A^-1) on SO(3): A^T
+        return xp.matmul(xp.swapaxes(step, -1, -2), v[..., None])[..., 0]
+
+    return _recursion(
+        xp,
+        rotation,
+        d,
+        s,
+        order,
+        exp=lambda v: axis_angle_to_matrix(xp, v, to_matrix=to_matrix),
+        compose=lambda a, b: xp.matmul(*match_rank(xp, a, b)),
+        transport=transport,
+        bracket=xp.linalg.cross,
+    )
+
+
+@op(control=(-1, 4, 4), u=())
+def se3_bspline(
+    xp: Any,
+    control: Any,
+    u: Any,
+    *,
+    order: int = 4,
+    to_matrix: Conversion = unit_quaternion_to_matrix,
+    to_quaternion: Conversion = matrix_to_quaternion,
+) -> tuple[Any, Any, Any]:
+    """A uniform cumulative B-spline of poses on SE(3), with its exact body twist and its rate.
+
+    The increments are twists of SE(3) (``se3_minus``), so rotation and translation move together along
+    screws; the poses' rotation is not the ``so3_bspline`` of their rotations (it is where the
+    translations are all equal).
+
+    Args:
+        control: control poses ``[[R, t], [0, 1]]``, shape ``(..., K, 4, 4)``, K >= order (fewer raises
+            ``ValueError``); the bottom rows are not read.
+        u: spline parameters, shape ``(...)``, broadcasting against the control points' batch shape.
+        order: the spline's order ``k`` >= 2 (4 is cubic, C2); static.
+
+    Returns:
+        ``(pose, twist, twist_dot)``: poses ``T(u)``, shape ``(..., 4, 4)``, bottom row exact; the body
+        twist ``vee(T^-1 dT/du)``, shape ``(..., 6)``, translation first (``(R^T dp/du, w_b)``); and
+        its derivative in ``u``, shape ``(..., 6)``.
+    """
+    count = _check_spline("se3_bspline", tuple(control.shape), 2, order)
+    increments = se3_minus(xp, control[..., 1:, :, :], control[..., :-1, :, :], to_quaternion=to_quaternion)
+    i, s = _segment(xp, u, count - order + 1)
+    pose = _gather(xp, control, i[..., None], 2)[..., 0, :, :]
+    d = _gather(xp, increments, _consecutive(xp, i, order - 1), 1)
+
+    def transport(step: Any, v: Any) -> Any:
+        return xp.matmul(se3_adjoint(xp, se3_inverse(xp, step)), v[..., None])[..., 0]
+
+    def bracket(a: Any, b: Any) -> Any:
+        return xp.matmul(se3_ad(xp, a), b[..., None])[..., 0]
+
+    return _recursion(
+        xp,
+        pose,
+        d,
+        s,
+        order,
+        exp=lambda v: se3_exp(xp, v, to_matrix=to_matrix),
+        compose=lambda a, b: se3_compose(xp, a, b),
+        transport=transport,
+        bracket=bracket,
+    )
+
+
+so3_bspline.__doc__ = (so3_bspline.__doc__ or "") + _SPLINE_DOC.format(
+    X="R", Ad="A_j^T", ad="V_j x (lambda_j' d_j)"
+)
+se3_bspline.__doc__ = (se3_bspline.__doc__ or "") + _SPLINE_DOC.format(
+    X="T", Ad="Ad(A_j^-1)", ad="ad(V_j) (lambda_j' d_j)"
+)
