@@ -24,6 +24,7 @@ NOTEBOOKS = (
     "orientation_on_manifold",
     "probabilistic_pose",
     "rotation_diffusion",
+    "pose_refinement",
 )
 
 
