@@ -143,17 +143,20 @@ def translation_to_body(xp: Any, rotation: Any, v: Any) -> Any:
     return xp.sum(rotation * v[..., :, None], axis=-2)
 
 
-def pose_to_world(xp: Any, pose: Any, twist: Any) -> Any:
-    """A body twist ``(rho, phi)`` ``(..., 6)`` with its translation part in world coordinates,
-    ``(R rho, phi)``: the form in which the optimisers keep the moments of a pose (see the module)."""
-    rho = translation_to_world(xp, pose[..., :3, :3], twist[..., :3])
+def pose_to_world(xp: Any, pose: Any, twist: Any, scale: float = 1.0) -> Any:
+    """A body twist ``(rho, phi)`` ``(..., 6)`` with its translation part in world coordinates and
+    times ``scale``, ``(scale R rho, phi)``: the form in which the optimisers keep the moments of a pose
+    (see the module; ``scale`` is the ``length_scale`` of a gradient, below)."""
+    rho = translation_to_world(
+        xp, pose[..., :3, :3], twist[..., :3] if scale == 1.0 else scale * twist[..., :3]
+    )
     return xp.concat([rho, twist[..., 3:]], axis=-1)
 
 
-def pose_to_body(xp: Any, pose: Any, twist: Any) -> Any:
-    """The inverse of :func:`pose_to_world`: ``(R^T v, phi)``."""
+def pose_to_body(xp: Any, pose: Any, twist: Any, scale: float = 1.0) -> Any:
+    """The inverse of :func:`pose_to_world` for ``1 / scale``: ``(scale R^T v, phi)``."""
     rho = translation_to_body(xp, pose[..., :3, :3], twist[..., :3])
-    return xp.concat([rho, twist[..., 3:]], axis=-1)
+    return xp.concat([rho if scale == 1.0 else scale * rho, twist[..., 3:]], axis=-1)
 
 
 def tangent_gradient(xp: Any, param: Any, grad: Any, kind: str, scalar_first: bool) -> Any:
@@ -301,6 +304,7 @@ def pose_adam(
     betas: tuple[float, float],
     eps: float,
     amsgrad: bool,
+    length_scale: float = 1.0,
 ) -> tuple[Any, Any, Any, Any]:
     """:func:`adam` for a pose at ``pose`` ``(..., 4, 4)``, from its tangent gradient ``(..., 6)``:
     ``(direction, exp_avg, exp_avg_sq, max_exp_avg_sq)``, the direction a body twist ``(..., 6)``.
@@ -309,11 +313,16 @@ def pose_adam(
     transport is then the identity; see the module), the second moment is one number per part,
     ``(..., 2)``: ``|g_rho|^2`` and ``|g_phi|^2`` averaged, each independent of the frame, and each
     part of the direction is along its part of the first moment (so the rotation part's transport is
-    the identity, as on SO(3)). ``max_exp_avg_sq`` is ignored (and returned) unless ``amsgrad``."""
+    the identity, as on SO(3)). ``max_exp_avg_sq`` is ignored (and returned) unless ``amsgrad``.
+
+    ``length_scale`` ``s``: the metric ``|rho / s|^2 + |phi|^2``, the translation ``s`` counting as one
+    radian. Adam runs in the coordinates ``rho / s`` (its gradient is ``s g_rho``), and its step
+    ``d`` there is ``s d`` in ``rho``: changing the units of length by a factor and ``s`` with them
+    changes nothing else."""
     maximum = max_exp_avg_sq[..., None] if amsgrad else None
     direction, exp_avg, exp_avg_sq, maximum = adam(
         xp,
-        _pairs(xp, pose_to_world(xp, pose, grad)),
+        _pairs(xp, pose_to_world(xp, pose, grad, length_scale)),
         _pairs(xp, exp_avg),
         exp_avg_sq[..., None],
         maximum,
@@ -323,7 +332,7 @@ def pose_adam(
         amsgrad,
         True,
     )
-    direction = pose_to_body(xp, pose, _joined(xp, direction))
+    direction = pose_to_body(xp, pose, _joined(xp, direction), length_scale)
     return direction, _joined(xp, exp_avg), exp_avg_sq[..., 0], maximum[..., 0] if amsgrad else max_exp_avg_sq
 
 
@@ -337,13 +346,31 @@ def pose_momentum(
     momentum_: float,
     dampening: float,
     nesterov: bool,
+    length_scale: float = 1.0,
 ) -> tuple[Any, Any]:
     """:func:`momentum` for a pose at ``pose`` ``(..., 4, 4)``, from its tangent gradient ``(..., 6)``:
     ``(update, buffer)``, the update a body twist. The buffer keeps its translation part in the world
     frame (transported by the identity) and its rotation part in the body frame, transported along
-    the step's rotation as on SO(3)."""
+    the step's rotation as on SO(3). ``length_scale`` as for :func:`pose_adam` (the gradient step in
+    ``rho`` is then ``s^2`` times that of the unit metric)."""
     update, buffer = momentum(
-        xp, pose_to_world(xp, pose, grad), buffer, first, lr, momentum_, dampening, nesterov, False
+        xp,
+        pose_to_world(xp, pose, grad, length_scale),
+        buffer,
+        first,
+        lr,
+        momentum_,
+        dampening,
+        nesterov,
+        False,
     )
     buffer = xp.concat([buffer[..., :3], transport(xp, update[..., 3:], buffer[..., 3:])], axis=-1)
-    return pose_to_body(xp, pose, update), buffer
+    return pose_to_body(xp, pose, update, length_scale), buffer
+
+
+def scale_translation(xp: Any, twist: Any, factor: float) -> Any:
+    """``(factor rho, phi)`` for twists ``(..., 6)``: the plain gradient step of a pose under the
+    metric of ``length_scale`` ``s`` is ``-lr (s^2 g_rho, g_phi)``."""
+    if factor == 1.0:
+        return twist
+    return xp.concat([factor * twist[..., :3], twist[..., 3:]], axis=-1)

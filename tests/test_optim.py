@@ -843,6 +843,72 @@ def test_jax_pose_leaves_under_multi_transform_and_through_apply_updates() -> No
     np.testing.assert_allclose(np.asarray(through["T"]), np.asarray(projected["T"]), rtol=1e-12, atol=1e-12)
 
 
+SCALED: dict[
+    str, tuple[Callable[..., torch.optim.Optimizer], Callable[..., optax.GradientTransformation]]
+] = {
+    "adam": (
+        lambda ps, s: RiemannianAdam(ps, lr=0.05, betas=(0.9, 0.99), manifold="se3", length_scale=s),
+        lambda s: jo.riemannian_adam(0.05, 0.9, 0.99, manifold="se3", length_scale=s),
+    ),
+    "sgd-nesterov": (
+        lambda ps, s: RiemannianSGD(
+            ps, lr=0.005, momentum=0.9, nesterov=True, manifold="se3", length_scale=s
+        ),
+        lambda s: jo.riemannian_sgd(0.005, 0.9, nesterov=True, manifold="se3", length_scale=s),
+    ),
+    "sgd": (
+        lambda ps, s: RiemannianSGD(ps, lr=0.005, manifold="se3", length_scale=s),
+        lambda s: jo.riemannian_sgd(0.005, manifold="se3", length_scale=s),
+    ),
+}
+
+
+@pytest.mark.parametrize("name", list(SCALED))
+def test_length_scale_makes_the_pose_steps_independent_of_the_units(name: str) -> None:
+    """The same registration in metres (length_scale 1) and in millimetres (length_scale 1000, the
+    loss in square metres): the same rotations and the same translations, in torch and in jax, at
+    every step; and in millimetres without the scale, other steps."""
+    points, targets, _, start = registration_problem(4)
+    make_torch, make_jax = SCALED[name]
+
+    def run(factor: float, scale: float) -> tuple[np.ndarray, np.ndarray]:
+        begin = start.copy()
+        begin[:, :3, 3] *= factor
+        p, t = points * factor, targets * factor
+        T = torch.nn.Parameter(torch.tensor(begin))
+        optimizer = make_torch([T], scale)
+        transformation = make_jax(scale)
+
+        def loss_jax(params: dict[str, jax.Array]) -> jax.Array:
+            return jnp.sum((dqj.se3_apply(params["T"][:, None], p) - t) ** 2) / factor**2
+
+        @jax.jit
+        def step(params: dict[str, jax.Array], state: Any) -> tuple[dict[str, jax.Array], Any]:
+            updates, state = transformation.update(jax.grad(loss_jax)(params), state, params)
+            return jo.apply_updates(params, updates), state
+
+        params = {"T": jnp.asarray(begin)}
+        state = transformation.init(params)
+        p_t, t_t = torch.tensor(p), torch.tensor(t)
+        for _ in range(20):
+            optimizer.zero_grad()
+            (((dqt.se3_apply(T[:, None], p_t) - t_t) ** 2).sum() / factor**2).backward()
+            optimizer.step()
+            params, state = step(params, state)
+        out = T.detach().numpy().copy()
+        np.testing.assert_allclose(np.asarray(params["T"]), out, rtol=1e-12, atol=1e-12 * factor)
+        out[:, :3, 3] /= factor
+        return out[:, :3, :3], out[:, :3, 3]
+
+    metres = run(1.0, 1.0)
+    millimetres = run(1000.0, 1000.0)
+    np.testing.assert_allclose(millimetres[0], metres[0], rtol=0, atol=1e-11)
+    np.testing.assert_allclose(millimetres[1], metres[1], rtol=0, atol=1e-11)
+    assert np.abs(metres[1] - start[:, :3, 3]).max() > 0.05  # it moved
+    unscaled = run(1000.0, 1.0)
+    assert np.abs(unscaled[0] - metres[0]).max() > 1e-3
+
+
 def test_pose_refusals() -> None:
     eye4 = torch.eye(4)
     with pytest.raises(
@@ -864,6 +930,12 @@ def test_pose_refusals() -> None:
     params = {"R": jnp.eye(3, dtype=jnp.float64)}
     with pytest.raises(ValueError, match=r"leaf \['R'\] has shape \(3, 3\); expected rigid transforms"):
         jo.riemannian_adam(0.1, manifold="se3").init(params)
+    with pytest.raises(ValueError, match=r"param group 0 \(manifold 'so3'\) has length_scale=2.0"):
+        RiemannianAdam([torch.nn.Parameter(torch.eye(3))], length_scale=2.0)
+    with pytest.raises(ValueError, match=r"has length_scale=-1.0; expected a positive finite length"):
+        RiemannianSGD([torch.nn.Parameter(eye4)], manifold="se3", length_scale=-1.0)
+    with pytest.raises(ValueError, match=r"riemannian_adam: length_scale=0.0 with manifold='se3'"):
+        jo.riemannian_adam(0.1, manifold="se3", length_scale=0.0)
     with pytest.raises(ValueError, match=r"riemannian_sgd: manifold='sphere'"):
         jo.riemannian_sgd(0.1, manifold="sphere")
     pose = {"T": jnp.eye(4, dtype=jnp.float64)}

@@ -58,6 +58,7 @@ Everything works under ``jit`` and ``vmap``, on any pytree, with learning-rate s
 
 from __future__ import annotations
 
+import math
 from typing import Any, NamedTuple
 
 import jax
@@ -111,7 +112,14 @@ MANIFOLDS = ("so3", "se3")
 """The manifolds of the transformations' ``manifold`` argument: rotations, rigid transforms."""
 
 
-def _check_manifold(fname: str, manifold: str) -> None:
+def _check_manifold(fname: str, manifold: str, length_scale: float = 1.0) -> None:
+    if not (length_scale > 0.0 and math.isfinite(length_scale)) or (
+        manifold != "se3" and length_scale != 1.0
+    ):
+        raise ValueError(
+            f"{fname}: length_scale={length_scale} with manifold={manifold!r}; expected a positive finite "
+            "length, with manifold 'se3' only (the translation that counts as one radian)"
+        )
     if manifold not in MANIFOLDS:
         raise ValueError(
             f"{fname}: manifold={manifold!r}; expected 'so3' (rotations) or 'se3' (rigid transforms); give "
@@ -203,7 +211,13 @@ def project_to_tangent(*, scalar_first: bool = True, manifold: str = "so3") -> o
 
 
 def scale_by_riemannian_adam(
-    b1: float = 0.9, b2: float = 0.999, eps: float = 1e-8, *, amsgrad: bool = False, manifold: str = "so3"
+    b1: float = 0.9,
+    b2: float = 0.999,
+    eps: float = 1e-8,
+    *,
+    amsgrad: bool = False,
+    manifold: str = "so3",
+    length_scale: float = 1.0,
 ) -> optax.GradientTransformation:
     """Adam's direction ``m_hat / (sqrt(v_hat) + eps)`` from tangent gradients ``(..., 3)`` (after
     ``project_to_tangent``), the step of ``diffquat.torch.optim.RiemannianAdam``.
@@ -226,9 +240,13 @@ def scale_by_riemannian_adam(
         eps: added to the square root of the second moment.
         amsgrad: keep the maximum of the second moment.
         manifold: ``"so3"`` (rotations) or ``"se3"`` (rigid transforms).
+        length_scale: on SE(3), the translation that counts as one radian, in the translation's units (the
+            metric ``|rho / s|^2 + |phi|^2``; Adam's step then moves a translation by about
+            ``length_scale`` times the learning rate). Changing the units of length and ``length_scale``
+            with them leaves every step the same.
     """
     name = "scale_by_riemannian_adam"
-    _check_manifold(name, manifold)
+    _check_manifold(name, manifold, length_scale)
 
     def init(params: optax.Params) -> ScaleByRiemannianAdamState:
         nu = _tangent_zeros(name, params, manifold, second=True)
@@ -249,7 +267,9 @@ def scale_by_riemannian_adam(
         out = [
             _optim.adam(jnp, g, m, v, vm, count.astype(g.dtype), (b1, b2), eps, amsgrad, True)
             if pose is None
-            else _optim.pose_adam(jnp, pose, g, m, v, vm, count.astype(g.dtype), (b1, b2), eps, amsgrad)
+            else _optim.pose_adam(
+                jnp, pose, g, m, v, vm, count.astype(g.dtype), (b1, b2), eps, amsgrad, length_scale
+            )
             for g, m, v, vm, pose in zip(leaves, mus, nus, maxima, poses, strict=True)
         ]
         direction, mu, nu, nu_max = ([o[k] for o in out] for k in range(4))
@@ -271,6 +291,7 @@ def riemannian_momentum(
     dampening: float = 0.0,
     nesterov: bool = False,
     manifold: str = "so3",
+    length_scale: float = 1.0,
 ) -> optax.GradientTransformation:
     """SGD's update ``-lr * buffer`` (``torch.optim.SGD``'s momentum rule) from tangent gradients
     ``(..., 3)``, with the buffer carried to the new rotation by parallel transport along the update
@@ -284,9 +305,11 @@ def riemannian_momentum(
         nesterov: Nesterov momentum (needs ``momentum > 0`` and ``dampening == 0``).
         manifold: ``"so3"`` (rotations) or ``"se3"`` (rigid transforms: the buffer's translation part is
             kept in the world frame, transported by the identity; ``update`` then needs the params).
+        length_scale: on SE(3), the translation that counts as one radian, in the translation's units (the
+            metric ``|rho / s|^2 + |phi|^2``; the gradient's translation part is then ``s^2 g_rho``).
     """
     name = "riemannian_momentum"
-    _check_manifold(name, manifold)
+    _check_manifold(name, manifold, length_scale)
     if nesterov and (momentum <= 0 or dampening != 0):
         raise ValueError("riemannian_momentum: Nesterov momentum requires a momentum and zero dampening")
 
@@ -301,14 +324,15 @@ def riemannian_momentum(
         lr = learning_rate(state.count) if callable(learning_rate) else learning_rate
         count = optax.safe_increment(state.count)
         if not momentum:
-            return jax.tree.map(lambda g: -lr * g, updates), RiemannianMomentumState(count, None)
+            steps = jax.tree.map(lambda g: -lr * _optim.scale_translation(jnp, g, length_scale**2), updates)
+            return steps, RiemannianMomentumState(count, None)
         leaves, tree = jax.tree.flatten(updates)
         first = state.count == 0
         options = (lr, momentum, dampening, nesterov)
         out = [
             _optim.momentum(jnp, g, b, first, *options, True)
             if pose is None
-            else _optim.pose_momentum(jnp, pose, g, b, first, *options)
+            else _optim.pose_momentum(jnp, pose, g, b, first, *options, length_scale)
             for g, b, pose in zip(
                 leaves, jax.tree.leaves(state.trace), _poses(name, params, tree, manifold), strict=True
             )
@@ -329,6 +353,7 @@ def riemannian_adam(
     amsgrad: bool = False,
     scalar_first: bool = True,
     manifold: str = "so3",
+    length_scale: float = 1.0,
 ) -> optax.GradientTransformation:
     """Adam on SO(3) (or SE(3)): ``optax.chain(project_to_tangent(), scale_by_riemannian_adam(...),
     optax.scale_by_learning_rate(learning_rate))``; the same steps as
@@ -344,11 +369,15 @@ def riemannian_adam(
         amsgrad: keep the maximum of the second moment.
         scalar_first: storage order of quaternion leaves.
         manifold: ``"so3"`` (rotations) or ``"se3"`` (rigid transforms ``(..., 4, 4)``).
+        length_scale: on SE(3), the translation that counts as one radian, in the translation's units (the
+            metric ``|rho / s|^2 + |phi|^2``; Adam's step then moves a translation by about
+            ``length_scale`` times the learning rate). Changing the units of length and ``length_scale``
+            with them leaves every step the same.
     """
-    _check_manifold("riemannian_adam", manifold)
+    _check_manifold("riemannian_adam", manifold, length_scale)
     return optax.chain(
         project_to_tangent(scalar_first=scalar_first, manifold=manifold),
-        scale_by_riemannian_adam(b1, b2, eps, amsgrad=amsgrad, manifold=manifold),
+        scale_by_riemannian_adam(b1, b2, eps, amsgrad=amsgrad, manifold=manifold, length_scale=length_scale),
         optax.scale_by_learning_rate(learning_rate),
     )
 
@@ -361,6 +390,7 @@ def riemannian_sgd(
     nesterov: bool = False,
     scalar_first: bool = True,
     manifold: str = "so3",
+    length_scale: float = 1.0,
 ) -> optax.GradientTransformation:
     """SGD on SO(3) (or SE(3)) with momentum: ``optax.chain(project_to_tangent(), riemannian_momentum(...))``;
     the same steps as ``diffquat.torch.optim.RiemannianSGD``. Apply the updates with
@@ -373,12 +403,19 @@ def riemannian_sgd(
         nesterov: Nesterov momentum.
         scalar_first: storage order of quaternion leaves.
         manifold: ``"so3"`` (rotations) or ``"se3"`` (rigid transforms ``(..., 4, 4)``).
+        length_scale: on SE(3), the translation that counts as one radian, in the translation's units (the
+            metric ``|rho / s|^2 + |phi|^2``; the gradient's translation part is then ``s^2 g_rho``).
     """
-    _check_manifold("riemannian_sgd", manifold)
+    _check_manifold("riemannian_sgd", manifold, length_scale)
     return optax.chain(
         project_to_tangent(scalar_first=scalar_first, manifold=manifold),
         riemannian_momentum(
-            learning_rate, momentum, dampening=dampening, nesterov=nesterov, manifold=manifold
+            learning_rate,
+            momentum,
+            dampening=dampening,
+            nesterov=nesterov,
+            manifold=manifold,
+            length_scale=length_scale,
         ),
     )
 
