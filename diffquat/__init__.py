@@ -12,6 +12,7 @@ shape; float16 and bfloat16 computed in float32; wrong shapes and dtypes raise, 
 """
 
 from ._types import EulerConvention as EulerConvention
+from ._types import Frame as Frame
 from ._types import MeanMethod as MeanMethod
 from ._types import PoseLayout as PoseLayout
 from ._types import Representation as Representation
@@ -23,6 +24,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "EulerConvention",
+    "Frame",
     "MeanMethod",
     "PoseLayout",
     "Representation",

@@ -570,3 +570,53 @@ so3_bspline.__doc__ = (so3_bspline.__doc__ or "") + _SPLINE_DOC.format(
 se3_bspline.__doc__ = (se3_bspline.__doc__ or "") + _SPLINE_DOC.format(
     X="T", Ad="Ad(A_j^-1)", ad="ad(V_j) (lambda_j' d_j)"
 )
+
+
+# ---------------------------------------------------------------------------------------------------
+# What the backends bind. The public functions validate their arguments against the registered shapes
+# (``_backend.Backend``) and apply the rule for non-finite rows to one array; this adapts the function
+# whose public form is not the core's (one step per sequence).
+
+
+def _bound(name: str, **trailing: tuple[int, ...]) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    """Register ``fn`` under the public name ``name`` (validation and errors name it)."""
+
+    def register(fn: Callable[..., Any]) -> Callable[..., Any]:
+        fn.__name__ = name
+        return op(**trailing)(fn)
+
+    return register
+
+
+@_bound("angular_velocity_from_quaternions", q=(-1, 4), dt=())
+def bound_angular_velocity_from_quaternions(
+    xp: Any, q: Any, dt: Any, *, frame: str = "body", scalar_first: bool = True
+) -> Any:
+    # one step per sequence, dt (...): the core's step per interval is dt[..., None]
+    return angular_velocity_from_quaternions(xp, q, dt[..., None], frame=frame, scalar_first=scalar_first)
+
+
+bound_angular_velocity_from_quaternions.__doc__ = """The constant angular velocity between consecutive
+    samples of an orientation: ``log(q_k^-1 q_k+1) / dt`` (``frame="body"``) or ``log(q_k+1 q_k^-1) /
+    dt`` (``frame="space"``), along the sequence axis -2.
+
+    Exact for a rate constant over each interval with ``|w dt| < pi`` (the inverse of
+    ``integrate_angular_velocity``); a central difference of quaternions is biased by a relative
+    ``(|w| dt)^2 / 24`` and breaks where the samples change sign. The logarithm is the shortest arc
+    (``quaternion_minus``): ``q_k`` and ``-q_k`` give the same rates, so sign flips between samples
+    change nothing.
+
+    Args:
+        q: samples, shape ``(..., T, 4)``, any non-zero norms (the zero quaternion is the identity).
+        dt: the time step between samples, shape ``(...)`` (one per sequence, broadcasting against
+            ``q``'s batch shape; a Python number for all). For irregular samples pass ``dt=1`` and
+            divide the result by the steps ``(..., T - 1, 1)``. Differences of timestamps: take them in
+            float64 or integers before casting (see the documentation's note on time).
+        frame: ``"body"`` (the default) or ``"space"``; anything else raises ``ValueError``.
+        scalar_first: storage order of ``q``.
+
+    Returns:
+        Shape ``(..., T - 1, 3)`` (empty for ``T <= 1``). Where two samples are exactly a half-turn
+        apart the rate takes ``quaternion_minus``'s sign and jumps there. A NaN or an infinity in a
+        sequence makes all of its rates NaN (the sequence is one row).
+    """

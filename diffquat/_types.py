@@ -50,3 +50,8 @@ PoseLayout: TypeAlias = Literal["wxyz_xyz", "xyz_xyzw", "xyzw_xyz", "xyz_wxyz"]
 """The order of a 7-vector pose, a quaternion and a translation: ``"wxyz_xyz"`` (jaxlie, kornia),
 ``"xyz_xyzw"`` (ROS ``geometry_msgs/Pose``, pypose, lietorch, manif), ``"xyzw_xyz"`` (Sophus),
 ``"xyz_wxyz"`` (theseus)."""
+
+Frame: TypeAlias = Literal["body", "space"]
+"""In which frame an angular velocity or acceleration is expressed: ``"body"`` (the rotating frame's
+axes, ``hat(w_b) = R^T R'``: what a gyroscope strapped to the body reads, scipy's ``RotationSpline``
+rates), or ``"space"`` (the fixed axes, ``w_s = R w_b``)."""

@@ -90,6 +90,13 @@ TOPICS: dict[str, list[str]] = {
         "rotation_between_vectors",
         "frame_from_three_points",
     ],
+    "Rotations in time": [
+        "angular_velocity",
+        "quaternion_derivative",
+        "angular_acceleration",
+        "integrate_angular_velocity",
+        "angular_velocity_from_quaternions",
+    ],
     "Rotation averaging and symmetric objects": [
         "rotation_mean",
         "quaternion_mean",
@@ -135,6 +142,7 @@ TOPICS: dict[str, list[str]] = {
     ],
     "Types": [
         "EulerConvention",
+        "Frame",
         "MeanMethod",
         "PoseLayout",
         "Representation",

@@ -1997,6 +1997,152 @@ OPS += [
 ]
 
 
+# ---------------------------------------------------------------------------------------------------
+# Rotations in time. References, independent of the formulas: the rates of R(q(t)) from scipy's
+# matrices (the quadratic numerator M(q) = |q|^2 R(q) differentiated by exact polarisation, not by
+# quaternion algebra), scipy's composition and rotation vectors for integration and rates from
+# samples, Shoemake's construction from scipy's slerps for SQUAD, and for the B-splines the product
+# rule over scipy's exponentials (the first and second derivatives of the cumulative product, not
+# Sommer et al.'s recursion) with the cubic basis written out. The case's rotation is the increment
+# between samples, knots or control points: the identity and the zero quaternion give static
+# trajectories (zero increments), near_identity tiny ones. Increments of exactly a half-turn have two
+# shortest arcs and rounding picks one (tests/test_motion.py checks them), so the rows where the
+# increment's arc is ambiguous are left out as for se3_interpolate.
+
+_GENERIC_STEP = Rotation.from_rotvec([0.4, -0.3, 0.5])
+
+
+def _numerator(x: np.ndarray) -> np.ndarray:
+    """M(x) = |x|^2 R(x): quadratic in x, 0 at x = 0 (scipy's matrix of the normalised x)."""
+    flat, batch = _flat(x, 1)
+    n2 = np.sum(flat * flat, axis=-1)
+    safe = np.where(n2[:, None] > 0, flat, [1.0, 0.0, 0.0, 0.0])
+    out = Rotation.from_quat(safe, scalar_first=True).as_matrix() if len(flat) else np.zeros((0, 3, 3))
+    return (n2[:, None, None] * out).reshape((*batch, 3, 3))
+
+
+def _polar(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The bilinear form of M: (M(a + b) - M(a - b)) / 4."""
+    return 0.25 * (_numerator(a + b) - _numerator(a - b))
+
+
+def _skew_vee(a: np.ndarray) -> np.ndarray:
+    return 0.5 * np.stack(
+        [a[..., 2, 1] - a[..., 1, 2], a[..., 0, 2] - a[..., 2, 0], a[..., 1, 0] - a[..., 0, 1]], -1
+    )
+
+
+def _rotation_rates(q: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> tuple[np.ndarray, ...]:
+    """(R, R', R'') of R(q(t)) = M(q) / |q|^2 at q(t) = q + t q' + t^2 q'' / 2; the zero q gives 0."""
+    n2 = np.sum(q * q, axis=-1)[..., None, None]
+    d1 = 2.0 * np.sum(q * qd, axis=-1)[..., None, None]
+    d2 = 2.0 * (np.sum(qd * qd, axis=-1) + np.sum(q * qdd, axis=-1))[..., None, None]
+    m0, m1, m2 = _numerator(q), 2.0 * _polar(q, qd), 2.0 * (_numerator(qd) + _polar(q, qdd))
+    inv = 1.0 / np.where(n2 > 0, n2, np.inf)
+    r = m0 * inv
+    r1 = (m1 - r * d1) * inv
+    r2 = (m2 - 2.0 * r1 * d1 - r * d2) * inv
+    return r, r1, r2
+
+
+def _rate_inputs(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    """(q, q', q''): derivatives of the size of |q| in random directions (the radial parts included)."""
+    size = _scale(q)[..., None]
+    return q, 0.7 * size * _companion(q, seed=31), 0.9 * size * _companion(q, seed=32)
+
+
+def oracle_angular_velocity(q: np.ndarray, qd: np.ndarray) -> np.ndarray:
+    r, r1, _ = _rotation_rates(q, qd, np.zeros_like(q))
+    return _skew_vee(np.swapaxes(r, -1, -2) @ r1)
+
+
+def oracle_angular_acceleration(q: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray:
+    # d/dt (R^T R') = R'^T R' + R^T R'', whose first term is symmetric
+    r, _, r2 = _rotation_rates(q, qd, qdd)
+    return _skew_vee(np.swapaxes(r, -1, -2) @ r2)
+
+
+def oracle_quaternion_derivative_space(q: np.ndarray, omega: np.ndarray) -> np.ndarray:
+    pure = np.concatenate([np.zeros_like(omega[..., :1]), omega], axis=-1)
+    return 0.5 * hamilton(pure, q)
+
+
+def _integrate_inputs(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    """(p, w, dt) with w dt the case's rotation vector: p any norm (the case's), the step the case."""
+    dt = np.random.default_rng(33).uniform(0.2, 1.5, size=q.shape[:-1])
+    return _companion(q, seed=11) * _scale(q)[..., None], _rotvec(q)[0] / dt[..., None], dt
+
+
+def oracle_integrate_space(p: np.ndarray, omega: np.ndarray, dt: np.ndarray) -> np.ndarray:
+    flat, _ = _flat(omega * dt[..., None], 1)
+    step = Rotation.from_rotvec(flat) if len(flat) else None
+    return _batched(lambda r: (step * r).as_quat(scalar_first=True), p, (4,))
+
+
+def _sequence(q: np.ndarray) -> np.ndarray:
+    """(..., 4, 4): unit samples p, p q, p q g, p q g q (g a generic step): the case's increment twice."""
+    p = oracle_normalize(_companion(q, seed=11))
+    g = np.broadcast_to(_GENERIC_STEP.as_quat(scalar_first=True), q.shape)
+    u = oracle_normalize(np.where(_scale(q)[..., None] > 0, q, [1.0, 0.0, 0.0, 0.0]))
+    s1 = hamilton(p, u)
+    s2 = hamilton(s1, g)
+    return np.stack([p, s1, s2, hamilton(s2, u)], axis=-2)
+
+
+def _from_quaternions_inputs(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    dt = np.random.default_rng(34).uniform(0.05, 2.0, size=q.shape[:-1])
+    return _sequence(q) * np.array([1.0, -1.0, 2.0, 0.5])[:, None], dt  # sign flip and norms: ignored
+
+
+def oracle_angular_velocity_from_quaternions(q: np.ndarray, dt: np.ndarray) -> np.ndarray:
+    a, b = q[..., :-1, :], q[..., 1:, :]
+    # r_k^-1 r_k+1 as a quaternion, its shortest-arc (canonical) rotation vector
+    return _rotvec(hamilton(oracle_invert(a), b))[0] / dt[..., None, None]
+
+
+OPS += [
+    Op(
+        "angular_velocity",
+        lambda q: _rate_inputs(q)[:2],
+        oracle_angular_velocity,
+        quaternion_args=(0, 1),
+        output="other",
+    ),
+    Op(
+        "quaternion_derivative",
+        lambda q: (q, 1.5 * _companion(q, seed=31)[..., 1:]),
+        oracle_quaternion_derivative_space,
+        kwargs={"frame": "space"},
+        label="quaternion_derivative[space]",
+        relative=True,  # q' scales with |q|
+    ),
+    Op(
+        "angular_acceleration",
+        _rate_inputs,
+        oracle_angular_acceleration,
+        quaternion_args=(0, 1, 2),
+        output="other",
+    ),
+    Op(
+        "integrate_angular_velocity",
+        _integrate_inputs,
+        oracle_integrate_space,
+        kwargs={"frame": "space"},
+        label="integrate_angular_velocity[space]",
+        unit=True,
+    ),
+    Op(
+        "angular_velocity_from_quaternions",
+        _from_quaternions_inputs,
+        oracle_angular_velocity_from_quaternions,
+        output="other",
+        # a rotation vector's error is absolute (an ulp of the samples): divided by dt, as the rates
+        error_scale=lambda q, dt: 1.0 / dt,
+        applies=lambda case: case.name not in AT_HALF_TURNS,
+    ),
+]
+
+
 OPS_BY_NAME = {op.id: op for op in OPS}
 
 

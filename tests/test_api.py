@@ -285,6 +285,7 @@ OPTION_TYPES = {
     "side": _types.Side,
     "method": _types.MeanMethod,
     "mode": _types.SE3Interpolation,
+    "frame": _types.Frame,
 }
 # Where one parameter name carries another option: the 7-vector pose layouts.
 OWN_OPTION_TYPES = {
@@ -334,6 +335,9 @@ def test_literal_aliases_list_exactly_what_the_functions_accept() -> None:
 
     assert typing.get_args(_types.PoseLayout) == tuple(POSE_LAYOUTS)
     assert typing.get_args(_types.SE3Interpolation) == INTERPOLATION_MODES
+    from diffquat._motion import FRAMES
+
+    assert typing.get_args(_types.Frame) == FRAMES
     import diffquat
 
     assert diffquat.EulerConvention is _types.EulerConvention

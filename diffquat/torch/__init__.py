@@ -12,16 +12,19 @@ import torch
 from torch import Tensor
 from torch.jit._trace import TracerWarning, is_tracing
 
-from .. import _algebra, _core, _euler, _igso3, _lie, _se3
+from .. import _algebra, _core, _euler, _igso3, _lie, _motion, _se3
 from .. import _fisher as _fi
 from .. import _representations as _rep
 from .. import _statistics as _stats
 from .._backend import Backend, documented, shape_tuple
 from .._public import public_dir as _public_dir
-from .._types import EulerConvention, MeanMethod, PoseLayout, Rotation6DLayout, SE3Interpolation, Side
+from .._types import EulerConvention, Frame, MeanMethod, PoseLayout, Rotation6DLayout, SE3Interpolation, Side
 from ._custom import custom_derivative, refuse_onnx
 
 __all__ = [
+    "angular_acceleration",
+    "angular_velocity",
+    "angular_velocity_from_quaternions",
     "axis_angle_to_matrix",
     "axis_angle_to_quaternion",
     "bingham_nll",
@@ -35,6 +38,7 @@ __all__ = [
     "igso3_log_density",
     "igso3_sample",
     "igso3_score",
+    "integrate_angular_velocity",
     "matrix_fisher_log_normalizer",
     "matrix_fisher_mode",
     "matrix_fisher_nll",
@@ -49,6 +53,7 @@ __all__ = [
     "pose_to_matrix",
     "quaternion_apply",
     "quaternion_conjugate",
+    "quaternion_derivative",
     "quaternion_geodesic_distance",
     "quaternion_invert",
     "quaternion_mean",
@@ -734,3 +739,39 @@ def rotation_between_vectors(a: Tensor, b: Tensor) -> Tensor:
 @documented(_se3.frame_from_three_points)
 def frame_from_three_points(x1: Tensor, x2: Tensor, x3: Tensor) -> Tensor:
     return _B(_se3.frame_from_three_points, x1, x2, x3)
+
+
+# Rotations in time: angular velocity and acceleration, integration, SQUAD and B-splines (diffquat._motion).
+
+
+@documented(_motion.angular_velocity)
+def angular_velocity(q: Tensor, q_dot: Tensor, *, frame: Frame = "body", scalar_first: bool = True) -> Tensor:
+    return _B(_motion.angular_velocity, q, q_dot, frame=frame, scalar_first=scalar_first)
+
+
+@documented(_motion.quaternion_derivative)
+def quaternion_derivative(
+    q: Tensor, omega: Tensor, *, frame: Frame = "body", scalar_first: bool = True
+) -> Tensor:
+    return _B(_motion.quaternion_derivative, q, omega, frame=frame, scalar_first=scalar_first)
+
+
+@documented(_motion.angular_acceleration)
+def angular_acceleration(
+    q: Tensor, q_dot: Tensor, q_ddot: Tensor, *, frame: Frame = "body", scalar_first: bool = True
+) -> Tensor:
+    return _B(_motion.angular_acceleration, q, q_dot, q_ddot, frame=frame, scalar_first=scalar_first)
+
+
+@documented(_motion.integrate_angular_velocity)
+def integrate_angular_velocity(
+    q: Tensor, omega: Tensor, dt: Tensor | float, *, frame: Frame = "body", scalar_first: bool = True
+) -> Tensor:
+    return _B(_motion.integrate_angular_velocity, q, omega, dt, frame=frame, scalar_first=scalar_first)
+
+
+@documented(_motion.bound_angular_velocity_from_quaternions)
+def angular_velocity_from_quaternions(
+    q: Tensor, dt: Tensor | float, *, frame: Frame = "body", scalar_first: bool = True
+) -> Tensor:
+    return _B(_motion.bound_angular_velocity_from_quaternions, q, dt, frame=frame, scalar_first=scalar_first)
