@@ -19,6 +19,7 @@ from ._types import Representation as Representation
 from ._types import Rotation6DLayout as Rotation6DLayout
 from ._types import SE3Interpolation as SE3Interpolation
 from ._types import Side as Side
+from ._types import SplineMode as SplineMode
 
 __version__ = "0.1.0"
 
@@ -31,5 +32,6 @@ __all__ = [
     "Rotation6DLayout",
     "SE3Interpolation",
     "Side",
+    "SplineMode",
     "__version__",
 ]

@@ -512,6 +512,9 @@ def so3_bspline(
     )
 
 
+SPLINE_MODES = ("se3", "split")
+
+
 @op(control=(-1, 4, 4), u=())
 def se3_bspline(
     xp: Any,
@@ -519,27 +522,39 @@ def se3_bspline(
     u: Any,
     *,
     order: int = 4,
+    mode: str = "se3",
     to_matrix: Conversion = unit_quaternion_to_matrix,
     to_quaternion: Conversion = matrix_to_quaternion,
 ) -> tuple[Any, Any, Any]:
-    """A uniform cumulative B-spline of poses on SE(3), with its exact body twist and its rate.
+    """A uniform cumulative B-spline of poses, on SE(3) or on R^3 x SO(3), with its exact body twist
+    and its rate.
 
-    The increments are twists of SE(3) (``se3_minus``), so rotation and translation move together along
-    screws; the poses' rotation is not the ``so3_bspline`` of their rotations (it is where the
-    translations are all equal).
+    ``mode="se3"`` (the default): the increments are twists of SE(3) (``se3_minus``), so rotation and
+    translation move together along screws; the poses' rotation is not the ``so3_bspline`` of their
+    rotations (it is where the translations are all equal). ``mode="split"``: the rotation is the
+    ``so3_bspline`` of the control rotations and the position the cumulative B-spline of the control
+    translations in R^3 (basalt's split spline; a straight line in the world for collinear control
+    translations, whatever the rotations do). Both return the same quantities, the body twist of the
+    curve they draw.
 
     Args:
         control: control poses ``[[R, t], [0, 1]]``, shape ``(..., K, 4, 4)``, K >= order (fewer raises
             ``ValueError``); the bottom rows are not read.
         u: spline parameters, shape ``(...)``, broadcasting against the control points' batch shape.
         order: the spline's order ``k`` >= 2 (4 is cubic, C2); static.
+        mode: ``"se3"`` or ``"split"`` (anything else raises ``ValueError``); static.
 
     Returns:
         ``(pose, twist, twist_dot)``: poses ``T(u)``, shape ``(..., 4, 4)``, bottom row exact; the body
         twist ``vee(T^-1 dT/du)``, shape ``(..., 6)``, translation first (``(R^T dp/du, w_b)``); and
-        its derivative in ``u``, shape ``(..., 6)``.
+        its derivative in ``u``, shape ``(..., 6)``. The position's derivative in the world is
+        ``R v``; in the split form its second derivative is ``R (v' + w_b x v)``.
     """
+    if mode not in SPLINE_MODES:
+        raise ValueError(f"se3_bspline: expected mode to be 'se3' or 'split', got {mode!r}")
     count = _check_spline("se3_bspline", tuple(control.shape), 2, order)
+    if mode == "split":
+        return _split_bspline(xp, control, u, order, count, to_matrix, to_quaternion)
     increments = se3_minus(xp, control[..., 1:, :, :], control[..., :-1, :, :], to_quaternion=to_quaternion)
     i, s = _segment(xp, u, count - order + 1)
     pose = _gather(xp, control, i[..., None], 2)[..., 0, :, :]
@@ -562,6 +577,35 @@ def se3_bspline(
         transport=transport,
         bracket=bracket,
     )
+
+
+def _split_bspline(
+    xp: Any, control: Any, u: Any, order: int, count: int, to_matrix: Conversion, to_quaternion: Conversion
+) -> tuple[Any, Any, Any]:
+    """``se3_bspline``'s ``mode="split"``: the rotation, ``w_b`` and ``w_b'`` of ``so3_bspline``, and
+    the position ``p = p_i + sum_j lambda_j (p_i+j - p_i+j-1)`` with its derivatives in ``u``, as the
+    body twist ``(R^T p', w_b)`` and its derivative ``(R^T p'' - w_b x R^T p', w_b')`` (``R'^T = -hat(w_b)
+    R^T``)."""
+    rotation, omega, omega_dot = so3_bspline(
+        xp, control[..., :3, :3], u, order=order, to_matrix=to_matrix, to_quaternion=to_quaternion
+    )
+    points = control[..., :3, 3]  # (B..., K, 3)
+    i, s = _segment(xp, u, count - order + 1)
+    first = _gather(xp, points, i[..., None], 1)[..., 0, :]
+    steps = _gather(xp, points[..., 1:, :] - points[..., :-1, :], _consecutive(xp, i, order - 1), 1)
+    position, velocity, accel = first, None, None
+    for j, (lam, lam_dot, lam_ddot) in enumerate(_basis(xp, s, order)):
+        dj = steps[..., j, :]
+        position = position + _scaled(xp, lam, dj)
+        velocity = _scaled(xp, lam_dot, dj) if velocity is None else velocity + _scaled(xp, lam_dot, dj)
+        accel = _scaled(xp, lam_ddot, dj) if accel is None else accel + _scaled(xp, lam_ddot, dj)
+    r_t = xp.swapaxes(rotation, -1, -2)
+    v = xp.matmul(r_t, velocity[..., None])[..., 0]
+    v_dot = xp.matmul(r_t, accel[..., None])[..., 0] - xp.linalg.cross(omega, v)
+    zero = xp.zeros_like(rotation[..., :1, :])
+    bottom = xp.concat([zero, xp.ones_like(zero[..., :1])], axis=-1)
+    pose = xp.concat([xp.concat([rotation, position[..., None]], axis=-1), bottom], axis=-2)
+    return pose, xp.concat([v, omega], axis=-1), xp.concat([v_dot, omega_dot], axis=-1)
 
 
 so3_bspline.__doc__ = (so3_bspline.__doc__ or "") + _SPLINE_DOC.format(
@@ -620,3 +664,40 @@ bound_angular_velocity_from_quaternions.__doc__ = """The constant angular veloci
         apart the rate takes ``quaternion_minus``'s sign and jumps there. A NaN or an infinity in a
         sequence makes all of its rates NaN (the sequence is one row).
     """
+
+
+# The B-splines return three arrays; the backends run one core and split its packed result (one
+# array, so that validation, dtypes and the rule for non-finite rows apply as to every function).
+
+
+def _pack(xp: Any, *parts: Any) -> Any:
+    """The parts ``(..., *trailing)`` flattened and concatenated along one last axis."""
+    flat = [xp.reshape(p, (*p.shape[: p.ndim - t], -1)) for p, t in parts]
+    return xp.concat(flat, axis=-1)
+
+
+@_bound("so3_bspline", control=(-1, 3, 3), u=())
+def bound_so3_bspline(xp: Any, control: Any, u: Any, **options: Any) -> Any:
+    rotation, omega, omega_dot = so3_bspline(xp, control, u, **options)
+    return _pack(xp, (rotation, 2), (omega, 1), (omega_dot, 1))
+
+
+@_bound("se3_bspline", control=(-1, 4, 4), u=())
+def bound_se3_bspline(xp: Any, control: Any, u: Any, **options: Any) -> Any:
+    pose, twist, twist_dot = se3_bspline(xp, control, u, **options)
+    return _pack(xp, (pose[..., :3, :], 2), (twist, 1), (twist_dot, 1))
+
+
+def split_so3_bspline(xp: Any, packed: Any) -> tuple[Any, Any, Any]:
+    """``(rotation, omega, omega_dot)`` from ``bound_so3_bspline``'s ``(..., 15)``."""
+    return xp.reshape(packed[..., :9], (*packed.shape[:-1], 3, 3)), packed[..., 9:12], packed[..., 12:]
+
+
+def split_se3_bspline(xp: Any, packed: Any) -> tuple[Any, Any, Any]:
+    """``(pose, twist, twist_dot)`` from ``bound_se3_bspline``'s ``(..., 24)``: the pose's bottom row
+    ``(0, 0, 0, 1)``, NaN where the row is NaN (the rule for non-finite rows)."""
+    top = xp.reshape(packed[..., :12], (*packed.shape[:-1], 3, 4))
+    corner = top[..., :1, :1]
+    zero = corner - corner
+    bottom = xp.concat([zero, zero, zero, zero + xp.ones_like(zero)], axis=-1)
+    return xp.concat([top, bottom], axis=-2), packed[..., 12:18], packed[..., 18:]

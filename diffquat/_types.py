@@ -55,3 +55,8 @@ Frame: TypeAlias = Literal["body", "space"]
 """In which frame an angular velocity or acceleration is expressed: ``"body"`` (the rotating frame's
 axes, ``hat(w_b) = R^T R'``: what a gyroscope strapped to the body reads, scipy's ``RotationSpline``
 rates), or ``"space"`` (the fixed axes, ``w_s = R w_b``)."""
+
+SplineMode: TypeAlias = Literal["se3", "split"]
+"""On which group ``se3_bspline`` interpolates: ``"se3"``, increments of SE(3) (rotation and
+translation along screws), or ``"split"``, R^3 x SO(3) (the rotations' ``so3_bspline`` and a B-spline of
+the translations in the world)."""

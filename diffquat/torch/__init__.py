@@ -18,7 +18,16 @@ from .. import _representations as _rep
 from .. import _statistics as _stats
 from .._backend import Backend, documented, shape_tuple
 from .._public import public_dir as _public_dir
-from .._types import EulerConvention, Frame, MeanMethod, PoseLayout, Rotation6DLayout, SE3Interpolation, Side
+from .._types import (
+    EulerConvention,
+    Frame,
+    MeanMethod,
+    PoseLayout,
+    Rotation6DLayout,
+    SE3Interpolation,
+    Side,
+    SplineMode,
+)
 from ._custom import custom_derivative, refuse_onnx
 
 __all__ = [
@@ -61,6 +70,7 @@ __all__ = [
     "quaternion_multiply",
     "quaternion_plus",
     "quaternion_slerp",
+    "quaternion_squad",
     "quaternion_to_axis_angle",
     "quaternion_to_euler_angles",
     "quaternion_to_matrix",
@@ -71,6 +81,7 @@ __all__ = [
     "se3_ad",
     "se3_adjoint",
     "se3_apply",
+    "se3_bspline",
     "se3_compose",
     "se3_exp",
     "se3_from_rotation_translation",
@@ -87,6 +98,7 @@ __all__ = [
     "se3_right_jacobian_inverse",
     "se3_to_rotation_translation",
     "se3_vee",
+    "so3_bspline",
     "so3_exp",
     "so3_hat",
     "so3_left_jacobian",
@@ -775,3 +787,22 @@ def angular_velocity_from_quaternions(
     q: Tensor, dt: Tensor | float, *, frame: Frame = "body", scalar_first: bool = True
 ) -> Tensor:
     return _B(_motion.bound_angular_velocity_from_quaternions, q, dt, frame=frame, scalar_first=scalar_first)
+
+
+@documented(_motion.quaternion_squad)
+def quaternion_squad(q: Tensor, t: Tensor | float, *, scalar_first: bool = True) -> Tensor:
+    return _B(_motion.quaternion_squad, q, t, scalar_first=scalar_first)
+
+
+@documented(_motion.so3_bspline)
+def so3_bspline(control: Tensor, u: Tensor | float, *, order: int = 4) -> tuple[Tensor, Tensor, Tensor]:
+    packed = _B(_motion.bound_so3_bspline, control, u, order=order, to_quaternion=_M2Q)
+    return _motion.split_so3_bspline(_B.xp, packed)  # type: ignore[no-any-return]
+
+
+@documented(_motion.se3_bspline)
+def se3_bspline(
+    control: Tensor, u: Tensor | float, *, order: int = 4, mode: SplineMode = "se3"
+) -> tuple[Tensor, Tensor, Tensor]:
+    packed = _B(_motion.bound_se3_bspline, control, u, order=order, mode=mode, to_quaternion=_M2Q)
+    return _motion.split_se3_bspline(_B.xp, packed)  # type: ignore[no-any-return]
