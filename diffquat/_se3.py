@@ -41,6 +41,7 @@ from ._core import (
     cancelling_factor,
     computed_once,
     matrix_to_quaternion,
+    nonfinite_by_arithmetic,
     op,
     quaternion_to_matrix,
     stack_matrix,
@@ -144,6 +145,55 @@ def se3_to_rotation_translation(xp: Any, matrix: Any) -> Any:
     return matrix[..., :3, :]
 
 
+# Composing, inverting and applying make non-finite rows NaN by their arithmetic (the backends add
+# no selection after them, see _core.NONFINITE_BY_ARITHMETIC): a term that is 0 for a pose whose
+# entries (its bottom row's too) are all finite and NaN otherwise, ``x - x`` summed, is added to every
+# entry of the result, and the bottom row is (0, 0, 0, 1) plus that term. It is a constant of
+# differentiation (``cancelling_factor``): its derivative is 0 wherever it is finite.
+
+
+def _same_rank(xp: Any, *arrays: Any) -> Any:
+    """The arrays with unit axes prepended to the same rank (``match_rank``), reshaped only where the
+    ranks differ: each reshape is an operation of its own in eager torch."""
+    return arrays if len({x.ndim for x in arrays}) == 1 else match_rank(xp, *arrays)
+
+
+def _nonfinite_term(xp: Any, zero: Any, trailing: int) -> Any:
+    """The sum of ``zero`` (0 or NaN entries, such as ``x - x``: an exact 0 for every finite entry, so
+    that no sum overflows) over its last ``trailing`` axes, kept as unit axes: 0, or NaN where any entry
+    is NaN, whatever the order of the additions. One ``sum`` (one operation in eager torch and NumPy),
+    except on the namespace that compiles through XLA (the one with ``optimization_barrier``, as in
+    ``_core.computed_once``): there the slices are unstacked and added, which XLA:CPU fuses into the
+    loop that uses the term, where a reduction was a slower loop of its own (docs/performance.md,
+    SE(3))."""
+    if getattr(xp, "optimization_barrier", None) is None:
+        return xp.sum(zero, axis=tuple(range(-trailing, 0)), keepdims=True)
+    for _ in range(trailing):
+        first, *rest = xp.unstack(zero, axis=-1)
+        zero = first
+        for part in rest:
+            zero = zero + part
+    return xp.reshape(zero, (*zero.shape, *(1,) * trailing))
+
+
+def _bottom_row(xp: Any, term: Any) -> Any:
+    """``(0, 0, 0, 1) + term`` for a term of shape ``(..., 1, 1)``: ``(..., 1, 4)``."""
+    return xp.concat([term, term, term, term + xp.ones_like(term)], axis=-1)
+
+
+def _compose(xp: Any, a: Any, b: Any, term: Any) -> Any:
+    """``T1 T2`` of poses ``a``, ``b`` of one rank, with ``term`` ``(..., 1, 1)`` (0 or NaN, of the
+    broadcast batch shape) in every entry: ``R1 [R2 | t2] + t1 (term, term, term, 1 + term)`` over the
+    bottom row ``(0, 0, 0, 1) + term``."""
+    row = _bottom_row(xp, term)
+    # One matrix product, contracting over 3: R1 [R2 | t2]. XLA:CPU compiles the same product
+    # contracting over 4 ([R1 | t1] times a 4x4 matrix) into a far slower dot; eager torch runs either
+    # as one call (docs/performance.md, SE(3)).
+    top = xp.matmul(a[..., :3, :3], b[..., :3, :]) + a[..., :3, 3:] * row
+    return xp.concat([top, row], axis=-2)
+
+
+@nonfinite_by_arithmetic
 @op(matrix1=(4, 4), matrix2=(4, 4))
 def se3_compose(xp: Any, matrix1: Any, matrix2: Any) -> Any:
     """The composition ``T1 T2`` of poses: ``[[R1 R2, R1 t2 + t1], [0, 1]]`` (apply ``T2``, then ``T1``).
@@ -156,11 +206,12 @@ def se3_compose(xp: Any, matrix1: Any, matrix2: Any) -> Any:
     Returns:
         Shape ``(..., 4, 4)``, the bottom row exactly ``(0, 0, 0, 1)``.
     """
-    a, b = match_rank(xp, matrix1, matrix2)
-    # [R1 | t1] times T2 with its exact bottom row: R1 R2 + t1 0 and R1 t2 + t1 1, one product
-    return _with_bottom(xp, xp.matmul(a[..., :3, :], _with_bottom(xp, b[..., :3, :])))
+    a, b = _same_rank(xp, matrix1, matrix2)
+    # one term for both poses: (a - a) b is 0, or NaN where an entry of either is not finite
+    return _compose(xp, a, b, cancelling_factor(xp, _nonfinite_term(xp, (a - a) * b, 2)))
 
 
+@nonfinite_by_arithmetic
 @op(matrix=(4, 4))
 def se3_inverse(xp: Any, matrix: Any) -> Any:
     """The inverse of poses in closed form: ``[[R^T, -R^T t], [0, 1]]`` (not a general matrix inverse).
@@ -172,10 +223,14 @@ def se3_inverse(xp: Any, matrix: Any) -> Any:
     Returns:
         Shape ``(..., 4, 4)``, the bottom row exactly ``(0, 0, 0, 1)``.
     """
+    term = cancelling_factor(xp, _nonfinite_term(xp, matrix - matrix, 2))
     r_t = xp.swapaxes(matrix[..., :3, :3], -1, -2)
-    return _with_bottom(xp, xp.concat([r_t, -xp.matmul(r_t, matrix[..., :3, 3:])], axis=-1))
+    # R^T t as a matrix-vector product: XLA writes it as a multiply and a sum, eager torch as one call
+    top = xp.concat([r_t + term, term - xp.matmul(r_t, matrix[..., :3, 3:])], axis=-1)
+    return xp.concat([top, _bottom_row(xp, term)], axis=-2)
 
 
+@nonfinite_by_arithmetic
 @op(matrix=(4, 4), points=(3,))
 def se3_apply(xp: Any, matrix: Any, points: Any) -> Any:
     """Poses applied to points: ``R p + t``.
@@ -188,8 +243,11 @@ def se3_apply(xp: Any, matrix: Any, points: Any) -> Any:
     Returns:
         Shape ``(..., 3)``.
     """
-    m, p = match_rank(xp, matrix, _column(points))
-    return (xp.matmul(m[..., :3, :3], p) + m[..., :3, 3:])[..., 0]
+    m, p = _same_rank(xp, matrix, _column(points))
+    term = cancelling_factor(xp, _nonfinite_term(xp, m - m, 2) + _nonfinite_term(xp, p - p, 2))
+    # [R | t] times (p + term, 1 + term): the term reaches every component through the product, and
+    # no elementwise pass follows it, which inductor would run as a loop over the trailing 3
+    return xp.matmul(m[..., :3, :], xp.concat([p + term, term + xp.ones_like(term)], axis=-2))[..., 0]
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -457,6 +515,7 @@ se3_right_jacobian_inverse.__doc__ = (
 # plus, minus, interpolation
 
 
+@nonfinite_by_arithmetic
 @op(matrix=(4, 4), delta=(6,))
 def se3_plus(
     xp: Any,
@@ -480,8 +539,13 @@ def se3_plus(
         is ``T1`` on either side.
     """
     right = check_side("se3_plus", side)
-    step = se3_exp(xp, delta, to_matrix=to_matrix)
-    return se3_compose(xp, matrix, step) if right else se3_compose(xp, step, matrix)
+    a, step = _same_rank(xp, matrix, se3_exp(xp, delta, to_matrix=to_matrix))
+    # the term of the inputs (delta's six entries, not the step's sixteen)
+    terms = _same_rank(
+        xp, _nonfinite_term(xp, matrix - matrix, 2), _nonfinite_term(xp, delta - delta, 1)[..., None]
+    )
+    term = cancelling_factor(xp, terms[0] + terms[1])
+    return _compose(xp, a, step, term) if right else _compose(xp, step, a, term)
 
 
 @op(matrix1=(4, 4), matrix2=(4, 4))
