@@ -55,7 +55,7 @@ from ._core import (
     xyzw_to_wxyz,
 )
 from ._lie import quaternion_minus, quaternion_plus
-from ._se3 import se3_ad, se3_adjoint, se3_compose, se3_exp, se3_inverse, se3_minus
+from ._se3 import se3_compose, se3_exp, se3_minus
 
 FRAMES = ("body", "space")
 
@@ -266,7 +266,15 @@ def _gather(xp: Any, x: Any, index: Any, trailing: int) -> Any:
     ints = xp.reshape(ints, (*ints.shape, *(1,) * trailing))
     x, ints = match_rank(xp, x, ints)
     axis = -1 - trailing
-    return xp.take_along_dim(x, ints, dim=axis) if take is None else take(x, ints, axis=axis)
+    if take is not None:
+        return take(x, ints, axis=axis)
+    # torch: gather from both expanded to the broadcast batch shape. take_along_dim broadcasts with
+    # the sizes themselves, which under torch.export makes a dynamic batch a constant.
+    batch = xp.broadcast_shapes(x.shape[:axis], ints.shape[:axis])
+    rest = tuple(x.shape[x.ndim - trailing :])
+    return xp.gather(
+        x.expand(*batch, x.shape[axis], *rest), x.ndim + axis, ints.expand(*batch, ints.shape[axis], *rest)
+    )
 
 
 def _consecutive(xp: Any, i: Any, count: int) -> Any:
@@ -560,11 +568,21 @@ def se3_bspline(
     pose = _gather(xp, control, i[..., None], 2)[..., 0, :, :]
     d = _gather(xp, increments, _consecutive(xp, i, order - 1), 1)
 
+    cross = xp.linalg.cross
+
+    def rotate_back(step: Any, v: Any) -> Any:  # R^T v
+        return xp.matmul(xp.swapaxes(step[..., :3, :3], -1, -2), v[..., None])[..., 0]
+
+    # Ad(A^-1) (rho, phi) = (R^T (rho - t x phi), R^T phi) for A = [R, t], and ad(a) b =
+    # (phi_a x rho_b + rho_a x phi_b, phi_a x phi_b): the products written out, no 6x6 matrices
     def transport(step: Any, v: Any) -> Any:
-        return xp.matmul(se3_adjoint(xp, se3_inverse(xp, step)), v[..., None])[..., 0]
+        rho, phi = v[..., :3], v[..., 3:]
+        moved = rho - cross(*match_rank(xp, step[..., :3, 3], phi))
+        return xp.concat([rotate_back(step, moved), rotate_back(step, phi)], axis=-1)
 
     def bracket(a: Any, b: Any) -> Any:
-        return xp.matmul(se3_ad(xp, a), b[..., None])[..., 0]
+        rho_a, phi_a, rho_b, phi_b = a[..., :3], a[..., 3:], b[..., :3], b[..., 3:]
+        return xp.concat([cross(phi_a, rho_b) + cross(rho_a, phi_b), cross(phi_a, phi_b)], axis=-1)
 
     return _recursion(
         xp,
@@ -577,6 +595,14 @@ def se3_bspline(
         transport=transport,
         bracket=bracket,
     )
+
+
+def _sum_terms(terms: list[Any]) -> Any:
+    """The sum of a non-empty list of arrays, in order."""
+    out = terms[0]
+    for t in terms[1:]:
+        out = out + t
+    return out
 
 
 def _split_bspline(
@@ -593,12 +619,9 @@ def _split_bspline(
     i, s = _segment(xp, u, count - order + 1)
     first = _gather(xp, points, i[..., None], 1)[..., 0, :]
     steps = _gather(xp, points[..., 1:, :] - points[..., :-1, :], _consecutive(xp, i, order - 1), 1)
-    position, velocity, accel = first, None, None
-    for j, (lam, lam_dot, lam_ddot) in enumerate(_basis(xp, s, order)):
-        dj = steps[..., j, :]
-        position = position + _scaled(xp, lam, dj)
-        velocity = _scaled(xp, lam_dot, dj) if velocity is None else velocity + _scaled(xp, lam_dot, dj)
-        accel = _scaled(xp, lam_ddot, dj) if accel is None else accel + _scaled(xp, lam_ddot, dj)
+    terms = [[_scaled(xp, f, steps[..., j, :]) for f in fs] for j, fs in enumerate(_basis(xp, s, order))]
+    position = first + _sum_terms([t[0] for t in terms])
+    velocity, accel = _sum_terms([t[1] for t in terms]), _sum_terms([t[2] for t in terms])
     r_t = xp.swapaxes(rotation, -1, -2)
     v = xp.matmul(r_t, velocity[..., None])[..., 0]
     v_dot = xp.matmul(r_t, accel[..., None])[..., 0] - xp.linalg.cross(omega, v)
@@ -672,7 +695,7 @@ bound_angular_velocity_from_quaternions.__doc__ = """The constant angular veloci
 
 def _pack(xp: Any, *parts: Any) -> Any:
     """The parts ``(..., *trailing)`` flattened and concatenated along one last axis."""
-    flat = [xp.reshape(p, (*p.shape[: p.ndim - t], -1)) for p, t in parts]
+    flat = [xp.reshape(p, (*p.shape[: p.ndim - t], math.prod(p.shape[p.ndim - t :]))) for p, t in parts]
     return xp.concat(flat, axis=-1)
 
 

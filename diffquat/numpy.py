@@ -707,7 +707,7 @@ def so3_bspline(
     control: ArrayLike, u: ArrayLike | float, *, order: int = 4
 ) -> tuple[NDArray[Any], NDArray[Any], NDArray[Any]]:
     packed = _B(_motion.bound_so3_bspline, control, u, order=order, to_quaternion=_M2Q)
-    return _motion.split_so3_bspline(_B.xp, packed)  # type: ignore[no-any-return]
+    return _motion.split_so3_bspline(_B.xp, packed)
 
 
 @documented(_motion.se3_bspline)
@@ -715,4 +715,4 @@ def se3_bspline(
     control: ArrayLike, u: ArrayLike | float, *, order: int = 4, mode: SplineMode = "se3"
 ) -> tuple[NDArray[Any], NDArray[Any], NDArray[Any]]:
     packed = _B(_motion.bound_se3_bspline, control, u, order=order, mode=mode, to_quaternion=_M2Q)
-    return _motion.split_se3_bspline(_B.xp, packed)  # type: ignore[no-any-return]
+    return _motion.split_se3_bspline(_B.xp, packed)

@@ -96,6 +96,9 @@ TOPICS: dict[str, list[str]] = {
         "angular_acceleration",
         "integrate_angular_velocity",
         "angular_velocity_from_quaternions",
+        "quaternion_squad",
+        "so3_bspline",
+        "se3_bspline",
     ],
     "Rotation averaging and symmetric objects": [
         "rotation_mean",
@@ -149,6 +152,7 @@ TOPICS: dict[str, list[str]] = {
         "Rotation6DLayout",
         "SE3Interpolation",
         "Side",
+        "SplineMode",
     ],
     "Version": ["__version__"],
 }

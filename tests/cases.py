@@ -9,6 +9,7 @@ implementation, wherever scipy has the operation.
 from __future__ import annotations
 
 import functools
+import sys
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
@@ -2138,6 +2139,293 @@ OPS += [
         output="other",
         # a rotation vector's error is absolute (an ulp of the samples): divided by dt, as the rates
         error_scale=lambda q, dt: 1.0 / dt,
+        applies=lambda case: case.name not in AT_HALF_TURNS,
+    ),
+]
+
+
+# SQUAD and the B-splines: six samples (the case's increment, a generic step, the case's, the generic,
+# the case's: three segments of a cubic B-spline, five of SQUAD), parameters drawn inside the segments
+# (not at a joint, where SQUAD's acceleration jumps) and away from the clamped ends.
+
+
+def _six(q: np.ndarray) -> np.ndarray:
+    """(..., 6, 4) unit samples: ``_sequence``'s four, then the generic step and the case's again."""
+    seq = _sequence(q)
+    g = np.broadcast_to(_GENERIC_STEP.as_quat(scalar_first=True), q.shape)
+    u = oracle_normalize(np.where(_scale(q)[..., None] > 0, q, [1.0, 0.0, 0.0, 0.0]))
+    fifth = hamilton(seq[..., -1, :], g)
+    return np.concatenate([seq, fifth[..., None, :], hamilton(fifth, u)[..., None, :]], axis=-2)
+
+
+def _parameters(q: np.ndarray, seed: int, top: float) -> np.ndarray:
+    """A parameter per batch element in (0.05, top - 0.05), not within 0.05 of an integer."""
+    u = np.random.default_rng(seed).uniform(0.05, 0.95, size=q.shape[:-1])
+    return u + np.random.default_rng(seed + 1).integers(0, int(top), size=q.shape[:-1])
+
+
+def _squad_inputs(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    return _six(q) * np.array([1.0, -1.0, 2.0, 1.0, -0.5, 1.0])[:, None], _parameters(q, 35, 5.0)
+
+
+def _slerp_rotations(a: Rotation, b: Rotation, h: np.ndarray) -> Rotation:
+    """scipy's shortest arc from a to b at h: a exp(h log(a^-1 b))."""
+    return a * Rotation.from_rotvec(h[:, None] * (a.inv() * b).as_rotvec())
+
+
+def oracle_quaternion_squad(q: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Shoemake's construction from scipy's rotations: inner controls s_i = q_i exp((d_i-1 - d_i)/4)
+    with d_i = log(q_i^-1 q_i+1) (ends their own), slerps of slerps; the sign of the knots made
+    consistent (each in the hemisphere of the one before), the result's sign that of the knots'
+    normalised linear blend."""
+    flat, batch = _flat(q, 2)
+    tf = np.broadcast_to(t, batch).reshape(-1)
+    n, count = flat.shape[0], flat.shape[1]
+    if n == 0:
+        return np.zeros((*batch, 4))
+    unit = flat / np.linalg.norm(flat, axis=-1, keepdims=True)
+    for k in range(1, count):
+        flip = np.sum(unit[:, k] * unit[:, k - 1], axis=-1) < 0
+        unit[flip, k] *= -1.0
+    rots = [Rotation.from_quat(unit[:, k], scalar_first=True) for k in range(count)]
+    d = [(rots[k].inv() * rots[k + 1]).as_rotvec() for k in range(count - 1)]
+    inner = [rots[0]] + [rots[k] * Rotation.from_rotvec((d[k - 1] - d[k]) / 4) for k in range(1, count - 1)]
+    inner.append(rots[-1])
+    tc = np.clip(tf, 0.0, count - 1.0)
+    i = np.minimum(np.floor(tc), count - 2).astype(int)
+    h = tc - i
+    out = np.zeros((n, 4))
+    blend = np.zeros((n, 4))
+    for k in range(count - 1):
+        sel = i == k
+        if not np.any(sel):
+            continue
+        hk = h[sel]
+        outer = _slerp_rotations(rots[k][sel], rots[k + 1][sel], hk)
+        mid = _slerp_rotations(inner[k][sel], inner[k + 1][sel], hk)
+        out[sel] = _slerp_rotations(outer, mid, 2.0 * hk * (1.0 - hk)).as_quat(scalar_first=True)
+        blend[sel] = (1.0 - hk)[:, None] * unit[sel, k] + hk[:, None] * unit[sel, k + 1]
+    out *= np.where(np.sum(out * blend, axis=-1) < 0, -1.0, 1.0)[:, None]
+    return out.reshape((*batch, 4))
+
+
+# The cubic's cumulative basis in powers s^0 .. s^3 (Kim, Kim and Shin 1995), rows j = 1, 2, 3.
+_CUBIC = np.array([[5.0, 3.0, -3.0, 1.0], [1.0, 3.0, 3.0, -2.0], [0.0, 0.0, 0.0, 1.0]]) / 6.0
+
+
+def _cubic_basis(s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(lambda, lambda', lambda''), each (n, 3), of the cubic at fractions s (n,)."""
+    powers = np.stack([np.ones_like(s), s, s * s, s**3], axis=-1)
+    first = np.stack([np.zeros_like(s), np.ones_like(s), 2 * s, 3 * s * s], axis=-1)
+    second = np.stack([np.zeros_like(s), np.zeros_like(s), 2 * np.ones_like(s), 6 * s], axis=-1)
+    return powers @ _CUBIC.T, first @ _CUBIC.T, second @ _CUBIC.T
+
+
+def _product_rule(first: np.ndarray, factors: list[tuple[np.ndarray, ...]]) -> tuple[np.ndarray, ...]:
+    """(X, X', X'') of X = first A_1 ... A_m from each factor's (A, A', A'') (n, d, d)."""
+    value, d1, d2 = first, np.zeros_like(first), np.zeros_like(first)
+    for a, a1, a2 in factors:
+        value, d1, d2 = value @ a, d1 @ a + value @ a1, d2 @ a + 2.0 * d1 @ a1 + value @ a2
+    return value, d1, d2
+
+
+def _segments(u: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    uc = np.clip(u, 0.0, count - 3.0)
+    i = np.minimum(np.floor(uc), count - 4).astype(int)
+    return i, uc - i
+
+
+def _twists(value: np.ndarray, d1: np.ndarray, d2: np.ndarray) -> np.ndarray:
+    """(..., 24): [T]_top (12), the body twist vee(T^-1 T') and its derivative
+    vee(T^-1 T'' - (T^-1 T')^2), of 4x4 pose curves."""
+    inv = np.linalg.inv(value)
+    x = inv @ d1
+    x1 = inv @ d2 - x @ x
+
+    def vee(m: np.ndarray) -> np.ndarray:
+        return np.concatenate([m[:, :3, 3], _skew_vee(m[:, :3, :3])], axis=-1)
+
+    return np.concatenate([value[:, :3, :].reshape(-1, 12), vee(x), vee(x1)], axis=-1)
+
+
+def _so3_factors(d: np.ndarray, lam: tuple[np.ndarray, ...]) -> list[tuple[np.ndarray, ...]]:
+    """Each exp(lambda_j d_j) and its first two derivatives in s, (n, 3, 3), from scipy's exponential:
+    A' = A hat(lambda' d), A'' = A (hat(lambda' d)^2 + hat(lambda'' d))."""
+    out = []
+    for j in range(3):
+        dj = d[:, j]
+        a = Rotation.from_rotvec(lam[0][:, j, None] * dj).as_matrix()
+        w1, w2 = hat(lam[1][:, j, None] * dj), hat(lam[2][:, j, None] * dj)
+        out.append((a, a @ w1, a @ (w1 @ w1 + w2)))
+    return out
+
+
+def _controls(q: np.ndarray) -> np.ndarray:
+    """(..., 6, 3, 3): the rotations of ``_six``."""
+    return (
+        _batched(lambda r: r.as_matrix(), _six(q), (3, 3)) if q.size else np.zeros((*q.shape[:-1], 6, 3, 3))
+    )
+
+
+def _bspline_inputs(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    return _controls(q), _parameters(q, 36, 3.0)
+
+
+def _poses(q: np.ndarray) -> np.ndarray:
+    rot = _controls(q)
+    t = np.random.default_rng(37).normal(size=(*rot.shape[:-2], 3))
+    top = np.concatenate([rot, t[..., None]], axis=-1)
+    bottom = np.broadcast_to([0.0, 0.0, 0.0, 1.0], (*rot.shape[:-2], 1, 4))
+    return np.concatenate([top, bottom], axis=-2)
+
+
+def _se3_bspline_inputs(q: np.ndarray) -> tuple[np.ndarray, ...]:
+    return _poses(q), _parameters(q, 38, 3.0)
+
+
+def _so3_curve(control: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, ...]:
+    """(R, R', R'') (n, 3, 3) of the cubic B-spline by the product rule over scipy's exponentials,
+    increments from scipy's logarithm of the control rotations (read as scipy reads a matrix)."""
+    n, count = control.shape[0], control.shape[1]
+    rots = [Rotation.from_matrix(control[:, k]) for k in range(count)]
+    inc = np.stack([(rots[k].inv() * rots[k + 1]).as_rotvec() for k in range(count - 1)], axis=1)
+    i, s = _segments(u, count)
+    rows = np.arange(n)
+    d = np.stack([inc[rows, i + j] for j in range(3)], axis=1)
+    first = np.stack([rots[k].as_matrix() for k in range(count)], axis=1)[rows, i]
+    return _product_rule(first, _so3_factors(d, _cubic_basis(s)))
+
+
+def _flat_pair(control: np.ndarray, u: np.ndarray, trailing: int) -> tuple[np.ndarray, np.ndarray, tuple]:
+    batch = np.broadcast_shapes(control.shape[: -1 - trailing], u.shape)
+    c = np.broadcast_to(control, (*batch, *control.shape[-1 - trailing :])).reshape(
+        -1, *control.shape[-1 - trailing :]
+    )
+    return c, np.broadcast_to(u, batch).reshape(-1), batch
+
+
+def oracle_so3_bspline(control: np.ndarray, u: np.ndarray) -> np.ndarray:
+    c, uf, batch = _flat_pair(control, u, 2)
+    if c.shape[0] == 0:
+        return np.zeros((*batch, 15))
+    r, r1, r2 = _so3_curve(c, uf)
+    rt = np.swapaxes(r, -1, -2)
+    # d/du (R^T R') = R'^T R' + R^T R'', whose first term is symmetric
+    out = np.concatenate([r.reshape(-1, 9), _skew_vee(rt @ r1), _skew_vee(rt @ r2)], axis=-1)
+    return out.reshape((*batch, 15))
+
+
+def _se3_hat(xi: np.ndarray) -> np.ndarray:
+    out = np.zeros((xi.shape[0], 4, 4))
+    out[:, :3, :3], out[:, :3, 3] = hat(xi[:, 3:]), xi[:, :3]
+    return out
+
+
+def oracle_se3_bspline(control: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """The SE(3) cubic by the product rule over scipy's matrix exponential of twists, increments from
+    scipy's matrix logarithm of the relative poses; the first control pose of a segment as it is."""
+    c, uf, batch = _flat_pair(control, u, 2)
+    n, count = c.shape[0], c.shape[1] if c.ndim == 4 else 0
+    if n == 0:
+        return np.zeros((*batch, 24))
+    # the control rotations read as scipy reads a matrix (the nearest rotation: inputs rounded to a
+    # half-precision dtype are off SO(3) by their rounding), the relative poses of those exactly
+    exact = c.copy()
+    exact[..., :3, :3] = (
+        Rotation.from_matrix(c[..., :3, :3].reshape(-1, 3, 3)).as_matrix().reshape(n, count, 3, 3)
+    )
+    rel = np.linalg.inv(exact[:, :-1]) @ exact[:, 1:]
+    logs = np.array([[np.real(scipy.linalg.logm(m)) for m in row] for row in rel])  # (n, K - 1, 4, 4)
+    inc = np.concatenate([logs[..., :3, 3], _skew_vee(logs[..., :3, :3])], axis=-1)
+    i, s = _segments(uf, count)
+    rows = np.arange(n)
+    lam = _cubic_basis(s)
+    factors = []
+    for j in range(3):
+        dj = inc[rows, i + j]
+        a = np.array([scipy.linalg.expm(m) for m in _se3_hat(lam[0][:, j, None] * dj)])
+        w1, w2 = _se3_hat(lam[1][:, j, None] * dj), _se3_hat(lam[2][:, j, None] * dj)
+        factors.append((a, a @ w1, a @ (w1 @ w1 + w2)))
+    return _twists(*_product_rule(c[rows, i], factors)).reshape((*batch, 24))
+
+
+def oracle_se3_bspline_split(control: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """R^3 x SO(3): the rotations' cubic (as oracle_so3_bspline) and the translations' cubic blend."""
+    c, uf, batch = _flat_pair(control, u, 2)
+    n, count = c.shape[0], c.shape[1] if c.ndim == 4 else 0
+    if n == 0:
+        return np.zeros((*batch, 24))
+    r, r1, r2 = _so3_curve(np.ascontiguousarray(c[..., :3, :3]), uf)
+    i, s = _segments(uf, count)
+    rows = np.arange(n)
+    steps = np.stack([c[rows, i + j + 1, :3, 3] - c[rows, i + j, :3, 3] for j in range(3)], axis=1)
+    lam = _cubic_basis(s)
+    curve = [np.zeros((n, 4, 4)) for _ in range(3)]
+    for k, (rk, pk) in enumerate(
+        [(r, c[rows, i, :3, 3] + np.einsum("nj,njc->nc", lam[0], steps))]
+        + [(rd, np.einsum("nj,njc->nc", lam[m], steps)) for m, rd in ((1, r1), (2, r2))]
+    ):
+        curve[k][:, :3, :3], curve[k][:, :3, 3] = rk, pk
+    curve[0][:, 3, 3] = 1.0
+    return _twists(*curve).reshape((*batch, 24))
+
+
+def pack_outputs(out: Any) -> Any:
+    """The table's one array of a function returning (value, rate, rate of the rate): the value's top
+    three rows (a rotation's 9 entries, a pose's 12) flattened, then the rates, concatenated along the
+    last axis by the arrays' own framework (torch's also under FX, whose proxies are not tensors)."""
+    value, rate, accel = out
+    top = value[..., :3, :]
+    torch = sys.modules.get("torch")
+    if torch is not None and isinstance(value, torch.Tensor | torch.fx.Proxy):
+        return torch.cat([top.flatten(-2), rate, accel], dim=-1)
+    flat = top.reshape(*top.shape[:-2], top.shape[-2] * top.shape[-1])
+    if isinstance(value, np.ndarray):
+        return np.concatenate([flat, rate, accel], axis=-1)
+    return sys.modules["jax.numpy"].concatenate([flat, rate, accel], axis=-1)
+
+
+OPS += [
+    Op(
+        "quaternion_squad",
+        _squad_inputs,
+        oracle_quaternion_squad,
+        unit=True,
+        applies=lambda case: case.name not in AT_HALF_TURNS,
+    ),
+    Op(
+        "so3_bspline",
+        _bspline_inputs,
+        oracle_so3_bspline,
+        quaternion_args=(),
+        output="other",
+        scalar_first=False,
+        join=pack_outputs,
+        applies=lambda case: case.name not in AT_HALF_TURNS,
+    ),
+    Op(
+        "se3_bspline",
+        _se3_bspline_inputs,
+        oracle_se3_bspline,
+        quaternion_args=(),
+        output="other",
+        relative=True,  # twists and their rates scale with the translations (entries up to ~10)
+        scalar_first=False,
+        join=pack_outputs,
+        applies=lambda case: case.name not in AT_HALF_TURNS,
+    ),
+    Op(
+        "se3_bspline",
+        _se3_bspline_inputs,
+        oracle_se3_bspline_split,
+        quaternion_args=(),
+        output="other",
+        relative=True,
+        scalar_first=False,
+        join=pack_outputs,
+        kwargs={"mode": "split"},
+        label="se3_bspline[split]",
+        variant_of="se3_bspline",
         applies=lambda case: case.name not in AT_HALF_TURNS,
     ),
 ]

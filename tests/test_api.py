@@ -291,6 +291,7 @@ OPTION_TYPES = {
 OWN_OPTION_TYPES = {
     ("pose_to_matrix", "layout"): _types.PoseLayout,
     ("matrix_to_pose", "layout"): _types.PoseLayout,
+    ("se3_bspline", "mode"): _types.SplineMode,
 }
 
 
@@ -335,9 +336,10 @@ def test_literal_aliases_list_exactly_what_the_functions_accept() -> None:
 
     assert typing.get_args(_types.PoseLayout) == tuple(POSE_LAYOUTS)
     assert typing.get_args(_types.SE3Interpolation) == INTERPOLATION_MODES
-    from diffquat._motion import FRAMES
+    from diffquat._motion import FRAMES, SPLINE_MODES
 
     assert typing.get_args(_types.Frame) == FRAMES
+    assert typing.get_args(_types.SplineMode) == SPLINE_MODES
     import diffquat
 
     assert diffquat.EulerConvention is _types.EulerConvention

@@ -1,5 +1,7 @@
 """Rotations in time (diffquat._motion), on the core functions directly (``xp = numpy``; torch float64
-for derivatives, jax under ``jit`` for its transforms), until the backends bind them:
+for derivatives, jax under ``jit`` for its transforms): the properties here hold of the formulas, which
+every backend binds unchanged (the shared table, tests/cases.py, checks the bound functions' values,
+derivatives and paths against independent references):
 
 - conventions against independent oracles: scipy's ``RotationSpline`` rates (body frame: a C2 spline
   cubic in rotation vectors, not a B-spline, so what is compared is the *definition* of the rates:

@@ -797,7 +797,7 @@ def quaternion_squad(q: Tensor, t: Tensor | float, *, scalar_first: bool = True)
 @documented(_motion.so3_bspline)
 def so3_bspline(control: Tensor, u: Tensor | float, *, order: int = 4) -> tuple[Tensor, Tensor, Tensor]:
     packed = _B(_motion.bound_so3_bspline, control, u, order=order, to_quaternion=_M2Q)
-    return _motion.split_so3_bspline(_B.xp, packed)  # type: ignore[no-any-return]
+    return _motion.split_so3_bspline(_B.xp, packed)
 
 
 @documented(_motion.se3_bspline)
@@ -805,4 +805,4 @@ def se3_bspline(
     control: Tensor, u: Tensor | float, *, order: int = 4, mode: SplineMode = "se3"
 ) -> tuple[Tensor, Tensor, Tensor]:
     packed = _B(_motion.bound_se3_bspline, control, u, order=order, mode=mode, to_quaternion=_M2Q)
-    return _motion.split_se3_bspline(_B.xp, packed)  # type: ignore[no-any-return]
+    return _motion.split_se3_bspline(_B.xp, packed)
