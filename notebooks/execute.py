@@ -25,6 +25,7 @@ NOTEBOOKS = (
     "probabilistic_pose",
     "rotation_diffusion",
     "pose_refinement",
+    "trajectory",
 )
 
 
