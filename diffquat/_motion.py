@@ -256,25 +256,27 @@ def _segment(xp: Any, u: Any, segments: int) -> tuple[Any, Any]:
 def _gather(xp: Any, x: Any, index: Any, trailing: int) -> Any:
     """``x[..., index[..., j], *rest]``: the entries of ``x`` ``(B..., K, *rest)`` (``trailing`` axes
     in ``rest``) at integer-valued float positions ``index`` ``(S..., J)`` along its axis of size K,
-    batch shapes broadcast: ``(N..., J, *rest)``. ``take_along_axis`` (numpy, jax) or torch's
-    ``take_along_dim``, which differentiate into a scatter-add onto the gathered entries only."""
-    take = getattr(xp, "take_along_axis", None)
-    astype = getattr(xp, "astype", None)
-    # torch's take_along_dim wants int64 (it has no namespace astype); numpy and jax int32 (K < 2^31,
-    # and int64 is not available to jax without x64)
-    ints = index.long() if astype is None else astype(index, xp.int32)
-    ints = xp.reshape(ints, (*ints.shape, *(1,) * trailing))
-    x, ints = match_rank(xp, x, ints)
-    axis = -1 - trailing
-    if take is not None:
-        return take(x, ints, axis=axis)
-    # torch: gather from both expanded to the broadcast batch shape. take_along_dim broadcasts with
-    # the sizes themselves, which under torch.export makes a dynamic batch a constant.
-    batch = xp.broadcast_shapes(x.shape[:axis], ints.shape[:axis])
+    batch shapes broadcast: ``(N..., J, *rest)``.
+
+    One integer index into ``x`` flattened to ``(prod(B) K, *rest)``: its position in the flattened
+    batch times K plus the index. Its derivative adds the cotangents into that flat array: memory of
+    the size of ``x`` and of the result. ``take_along_axis`` needs both operands broadcast to one
+    shape, and its derivative (torch's) was as large as ``x`` repeated for every result, N K entries;
+    torch's also made a dynamic batch a constant under ``torch.export``."""
+    count = x.shape[-1 - trailing]
     rest = tuple(x.shape[x.ndim - trailing :])
-    return xp.gather(
-        x.expand(*batch, x.shape[axis], *rest), x.ndim + axis, ints.expand(*batch, ints.shape[axis], *rest)
-    )
+    batch = tuple(x.shape[: x.ndim - 1 - trailing])
+    size = math.prod(batch)
+    astype = getattr(xp, "astype", None)
+    if astype is None:  # torch: int64 indices (it has no namespace astype), on x's device
+        offsets = xp.arange(size, device=x.device)
+        ints = index.long()
+    else:  # numpy, jax: jax has int64 only with x64
+        offsets = xp.arange(size)
+        ints = astype(index, offsets.dtype)
+    offsets = xp.reshape(offsets * count, (*batch, 1))
+    offsets, ints = match_rank(xp, offsets, ints)
+    return xp.reshape(x, (size * count, *rest))[offsets + ints]
 
 
 def _consecutive(xp: Any, i: Any, count: int) -> Any:

@@ -251,3 +251,45 @@ def test_quick_se3_benchmark_writes_results(tmp_path: Path) -> None:
     for row in ours:
         q = row["float32"]["q"]
         assert len(q) == len(accuracy["thetas"]) == 13 and max(q) <= 8, (row["label"], row["function"], q)
+
+
+def test_quick_motion_benchmark_writes_results(tmp_path: Path) -> None:
+    """``benchmarks.motion --quick`` (N = 65, without ``jax.jit``) writes its ratio, timing and check
+    tables: every timing is positive, scipy's ``RotationSpline`` is set against diffquat numpy's
+    ``so3_bspline``, scipy's rate is the body rate (what ``so3_bspline`` returns), and where pypose is
+    installed its ``bspline`` poses are diffquat's ``se3_bspline`` poses at the same points (float64
+    rounding), with a ratio against diffquat torch eager forward and forward + backward."""
+    import importlib.util
+    import math
+
+    run_benchmark("motion", tmp_path)
+    text = (tmp_path / "MOTION.md").read_text()
+    for fragment in (
+        "## Ratios: peer time / diffquat time",
+        "### Every cell where a peer is faster",
+        "## Time per evaluated point",
+        "### se3_bspline, forward + backward",
+        "### so3_bspline, forward",
+        "### quaternion_squad, forward + backward",
+        "| diffquat torch eager (mode='split') |",
+        "| scipy RotationSpline, evaluation only |",
+        "## Checks",
+    ):
+        assert fragment in text
+    results = json.loads((tmp_path / "motion.json").read_text())
+    for per_mode in results["timings"].values():
+        for per_n in per_mode.values():
+            for timings in per_n.values():
+                assert all(math.isfinite(t["median_s"]) and t["median_s"] > 0 for t in timings.values())
+    cells = results["ratios"]
+    assert all(math.isfinite(c["ratio"]) and c["ratio"] > 0 for c in cells)
+    assert {(c["peer"], c["diffquat"]) for c in cells if c["group"] == "so3_bspline"} == {
+        ("scipy RotationSpline", "diffquat numpy"),
+        ("scipy RotationSpline, evaluation only", "diffquat numpy"),
+    }
+    assert results["scipy_rate_frame"]["body"] < 1e-6 < results["scipy_rate_frame"]["space"]
+    if importlib.util.find_spec("pypose") is not None:
+        pypose_modes = {c["mode"] for c in cells if c["peer"] == "pypose bspline"}
+        assert pypose_modes == {"forward", "forward + backward"}
+        agreement = results["pypose_agreement"]
+        assert agreement and all(r["float64"] < 1e-12 and r["float32"] < 1e-4 for r in agreement)
