@@ -258,23 +258,28 @@ def _gather(xp: Any, x: Any, index: Any, trailing: int) -> Any:
     in ``rest``) at integer-valued float positions ``index`` ``(S..., J)`` along its axis of size K,
     batch shapes broadcast: ``(N..., J, *rest)``.
 
-    One integer index into ``x`` flattened to ``(prod(B) K, *rest)``: its position in the flattened
-    batch times K plus the index. Its derivative adds the cotangents into that flat array: memory of
-    the size of ``x`` and of the result. ``take_along_axis`` needs both operands broadcast to one
-    shape, and its derivative (torch's) was as large as ``x`` repeated for every result, N K entries;
-    torch's also made a dynamic batch a constant under ``torch.export``."""
+    Its derivative adds the cotangents into an array of the size of ``x``: gathering along an axis
+    of ``x`` broadcast to every point (``take_along_axis``) has a derivative of N K entries, which
+    ran out of memory at 262 144 points (docs/performance.md, Rotations in time). So one spline
+    (``B`` all ones, a static check) is indexed directly, ``x`` ``(K, *rest)`` at the integers; a
+    batch of splines in torch by one index into ``x`` flattened to ``(prod(B) K, *rest)`` (batch
+    position times K plus the index; torch's ``take_along_dim`` also made a dynamic batch a constant
+    under ``torch.export``), and in numpy and jax by ``take_along_axis``, whose batch axes stay
+    aligned (jax shards them; a flat index would mix the shards)."""
     count = x.shape[-1 - trailing]
     rest = tuple(x.shape[x.ndim - trailing :])
     batch = tuple(x.shape[: x.ndim - 1 - trailing])
     size = math.prod(batch)
     astype = getattr(xp, "astype", None)
-    if astype is None:  # torch: int64 indices (it has no namespace astype), on x's device
-        offsets = xp.arange(size, device=x.device)
-        ints = index.long()
-    else:  # numpy, jax: jax has int64 only with x64
-        offsets = xp.arange(size)
-        ints = astype(index, offsets.dtype)
-    offsets = xp.reshape(offsets * count, (*batch, 1))
+    # torch wants int64 (it has no namespace astype); numpy and jax int32 (K < 2^31; jax has int64
+    # only with x64)
+    ints = index.long() if astype is None else astype(index, xp.int32)
+    if size == 1:
+        return xp.reshape(x, (count, *rest))[ints]
+    if astype is not None:
+        ints, x = match_rank(xp, xp.reshape(ints, (*ints.shape, *(1,) * trailing)), x)
+        return xp.take_along_axis(x, ints, axis=-1 - trailing)
+    offsets = xp.reshape(xp.arange(size, device=x.device) * count, (*batch, 1))
     offsets, ints = match_rank(xp, offsets, ints)
     return xp.reshape(x, (size * count, *rest))[offsets + ints]
 
