@@ -2425,7 +2425,6 @@ OPS += [
         join=pack_outputs,
         kwargs={"mode": "split"},
         label="se3_bspline[split]",
-        variant_of="se3_bspline",
         applies=lambda case: case.name not in AT_HALF_TURNS,
     ),
 ]
