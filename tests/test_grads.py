@@ -243,12 +243,14 @@ def _jax_program(op: Op, second_order: bool, ranks: list[int], apart: bool) -> F
         xs, t1, t2 = flat["xs"], extra["t1"], extra["t2"]
         out["value"] = step(fn, *xs)
         out["vmap"] = step(jax.vmap(fn), *xs)
-        out["grad"] = step(
-            jax.grad(
-                lambda *xs: (extra["weights"] * fn(*xs).reshape(len(xs[0]), -1).sum(-1) ** 2).sum(), argnums
-            ),
-            *xs,
-        )
+
+        def loss(*xs: Any) -> Any:
+            value = fn(*xs)
+            return (extra["weights"] * value.reshape(len(xs[0]), -1).sum(-1) ** 2).sum(), value
+
+        # the value the gradient's own forward computed beside it (has_aux): the cotangent is built
+        # from it, and a compiler may round it otherwise in a program of its own
+        out["grad"], out["grad_value"] = step(jax.grad(loss, argnums, has_aux=True), *xs)
         out["jacfwd"] = step(jax.vmap(jax.jacfwd(fn, argnums)), *xs)
         # x +- h t2 for every row, stacked on a leading axis (the ops are batched over leading axes)
         moved = [jnp.stack([x + extra["h"] * t, x - extra["h"] * t]) for x, t in zip(xs, t2, strict=True)]
@@ -402,10 +404,11 @@ def test_jax_derivatives(op: Op, backend: Backend, dtype: str) -> None:
     for a, b in zip(fwd, rev, strict=True):
         assert np.all(np.isfinite(a[edge])), _cases_of(~np.isfinite(a).reshape(n, -1).all(-1) & edge, parts)
         assert_rows_close(a, b, 1e-10, smooth)
-    # grad of sum_n weights_n (sum_o f_no)^2: J^T (2 weights_n S_n) per row, with S from the compiled
-    # program's own value (where an op is ill-conditioned, as the IGSO(3) score just short of pi, eager
-    # and compiled values differ by its conditioning, and this check is of the pullback, not the value)
-    s = got["value"].reshape(n, -1).sum(-1)
+    # grad of sum_n weights_n (sum_o f_no)^2: J^T (2 weights_n S_n) per row, with S from the value the
+    # gradient's forward computed (where an op is ill-conditioned, as the IGSO(3) score just short of
+    # pi, two compiled evaluations differ by its conditioning, and this check is of the pullback, not
+    # the value)
+    s = got["grad_value"].reshape(n, -1).sum(-1)
     for g, j in zip(got["grad"], rev, strict=True):
         want = np.einsum("noi,n->ni", j, 2 * extra["weights"] * s)
         assert np.all(np.isfinite(g[edge]))
