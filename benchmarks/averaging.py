@@ -17,7 +17,6 @@ n = 1000 here), so it runs on a smaller problem beside diffquat's.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import sys
@@ -31,7 +30,7 @@ sys.path.insert(0, str(ROOT / "notebooks"))
 
 import orientation_on_manifold as om  # noqa: E402  (the problem and the solvers)
 
-from benchmarks.run import Timing, machine, time_all  # noqa: E402
+from benchmarks.run import Timing, finish, time_all  # noqa: E402
 
 TARGETS = (("1%", 0.01), ("0.1%", 0.001))
 FULL = {"n": 1000, "steps": 200, "lm_iterations": 12, "repeats": 3, "pypose_n": 200, "pypose_iterations": 8}
@@ -171,19 +170,9 @@ def run(quick: bool, out_dir: Path) -> dict[str, Any]:
     sizes = STEP_SIZES_QUICK if quick else STEP_SIZES_FULL
     steps = optimizer_steps(sizes, 3 if quick else 7, 0.002 if quick else 0.05)
     results["optimizer_step"] = {n: {label: t.__dict__ for label, t in ts.items()} for n, ts in steps.items()}
-    results["seconds"] = time.time() - started
-    results["load"] = {"before": load_before, "after": os.getloadavg()}
-    info = machine()
-    for peer in ("geoopt", "pypose", "optax"):
-        try:
-            info[peer] = str(getattr(__import__(peer), "__version__", "installed"))
-        except ImportError:
-            info[peer] = "not installed"
-    results["machine"] = info
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "averaging.json").write_text(json.dumps(results, indent=1))
-    (out_dir / "AVERAGING.md").write_text(render(results))
-    return results
+    return finish(
+        results, started, load_before, out_dir, "averaging", render, peers=("geoopt", "pypose", "optax")
+    )
 
 
 def _seconds(x: float | None) -> str:

@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import json
 import os
 import statistics
 import time
@@ -52,7 +51,7 @@ import numpy as np
 from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 
-from .run import _fmt_time, _sync, machine, time_all
+from .run import _fmt_time, _sync, finish, time_all
 
 # The table, as the diffusion codes size it.
 GRID_SIGMA = (0.1, 1.5)
@@ -579,13 +578,7 @@ def run(quick: bool, out_dir: Path) -> dict[str, Any]:
         "accuracy": accuracy(table),
         "medians": medians(table, 4096 if quick else 16384),
     }
-    results["seconds"] = time.time() - started
-    results["load"] = {"before": list(load_before), "after": list(os.getloadavg())}
-    results["machine"] = machine()
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "igso3.json").write_text(json.dumps(results, indent=1))
-    (out_dir / "IGSO3.md").write_text(render(results))
-    return results
+    return finish(results, started, load_before, out_dir, "igso3", render)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -14,7 +14,6 @@ first call (jax compiles there) is reported apart.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
 from collections.abc import Callable
@@ -24,7 +23,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .run import _fmt_time, _sync, machine, time_all
+from .run import _fmt_time, _sync, finish, machine, time_all
 
 FULL_SIZES = ((1, 16), (1, 1024), (64, 16), (1024, 16), (16384, 8))
 QUICK_SIZES = ((8, 16),)  # one size: each jax function compiles once per size and mode
@@ -144,12 +143,7 @@ def run(quick: bool, out_dir: Path) -> dict[str, Any]:
                 }
             per_mode[mode] = per_size
         results["functions"][function] = per_mode
-    results["seconds"] = time.time() - started
-    results["load"] = {"before": list(load_before), "after": list(os.getloadavg())}
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "means.json").write_text(json.dumps(results, indent=1))
-    (out_dir / "MEANS.md").write_text(render(results))
-    return results
+    return finish(results, started, load_before, out_dir, "means", render)
 
 
 def ratios(results: dict[str, Any]) -> list[str]:

@@ -54,7 +54,7 @@ from typing import Any
 
 import numpy as np
 
-from .run import _fmt_time, _sync, machine, time_all
+from .run import _fmt_time, _sync, finish, time_all
 
 # (segments S, points per segment M): K = S + 3 control points, N = S M + 1 points.
 FULL_CASES = ((16, 4), (128, 32), (1024, 256))
@@ -548,13 +548,7 @@ def run(quick: bool, out_dir: Path, repeats: int | None = None) -> dict[str, Any
         "pypose_agreement": pypose_agreement(quick),
         "scipy_rate_frame": scipy_rate_frame(),
     }
-    results["seconds"] = time.time() - started
-    results["load"] = {"before": list(load_before), "after": list(os.getloadavg())}
-    results["machine"] = machine()
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "motion.json").write_text(json.dumps(results, indent=1))
-    (out_dir / "MOTION.md").write_text(render(results))
-    return results
+    return finish(results, started, load_before, out_dir, "motion", render)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -665,6 +665,33 @@ def machine() -> dict[str, str]:
     return info
 
 
+def finish(
+    results: dict[str, Any],
+    started: float,
+    load_before: tuple[float, ...],
+    out_dir: Path,
+    name: str,
+    render: Callable[[dict[str, Any]], str],
+    peers: tuple[str, ...] = (),
+) -> dict[str, Any]:
+    """Completes a benchmark module's results (its length, the load before and after it, the machine
+    and the versions of ``peers`` beside ``machine``'s) and writes ``<name>.json`` and the rendered
+    ``<NAME>.md`` in ``out_dir``."""
+    results["seconds"] = time.time() - started
+    results["load"] = {"before": list(load_before), "after": list(os.getloadavg())}
+    info = machine()
+    for peer in peers:
+        try:
+            info[peer] = str(getattr(__import__(peer), "__version__", "installed"))
+        except ImportError:
+            info[peer] = "not installed"
+    results["machine"] = info
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / f"{name}.json").write_text(json.dumps(results, indent=1))
+    (out_dir / f"{name.upper()}.md").write_text(render(results))
+    return results
+
+
 def _fmt_time(seconds: float) -> str:
     if not np.isfinite(seconds):
         return "—"

@@ -41,7 +41,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import math
 import os
 import sys
@@ -56,7 +55,7 @@ from typing import Any
 
 import numpy as np
 
-from .run import FULL_SIZES, _fmt_time, _sync, machine, time_all, unit_quaternions
+from .run import FULL_SIZES, _fmt_time, _sync, finish, time_all, unit_quaternions
 
 QUICK_SIZES = (64,)
 DEFAULT_REPEATS = {True: 2, False: 7}  # rotated blocks per cell, by --quick
@@ -1328,13 +1327,7 @@ def run(
         "ratios": path_ratios(timed),
         "accuracy": accuracy(),
     }
-    results["seconds"] = time.time() - started
-    results["load"] = {"before": list(load_before), "after": list(os.getloadavg())}
-    results["machine"] = machine()
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "se3.json").write_text(json.dumps(results, indent=1))
-    (out_dir / "SE3.md").write_text(render(results))
-    return results
+    return finish(results, started, load_before, out_dir, "se3", render)
 
 
 def main(argv: list[str] | None = None) -> None:
