@@ -55,7 +55,7 @@ from ._core import (
     xyzw_to_wxyz,
 )
 from ._lie import quaternion_minus, quaternion_plus
-from ._se3 import se3_compose, se3_exp, se3_minus
+from ._se3 import _bottom_row, _with_bottom, se3_compose, se3_exp, se3_minus
 
 FRAMES = ("body", "space")
 
@@ -416,8 +416,7 @@ def _recursion(
     xp: Any,
     first: Any,
     d: Any,
-    s: Any,
-    order: int,
+    basis: list[tuple[Any, Any, Any]],
     *,
     exp: Callable[[Any], Any],
     compose: Callable[[Any, Any], Any],
@@ -426,7 +425,8 @@ def _recursion(
 ) -> tuple[Any, Any, Any]:
     """Sommer et al.'s recursion on one group: the value ``first exp(lambda_1 d_1) ...`` and its body
     rate ``V`` and acceleration ``V'``, from the first control point of the segment ``first``
-    ``(N..., n, n)``, the increments ``d`` ``(N..., order - 1, m)`` and the fractions ``s`` ``(S...)``.
+    ``(N..., n, n)``, the increments ``d`` ``(N..., order - 1, m)`` and the basis at the fractions
+    (``_basis``, each ``(S...)``).
 
     ``exp`` maps a tangent to the group, ``compose`` multiplies, ``transport(A, v)`` is ``Ad(A^-1) v``
     and ``bracket(a, b)`` is ``ad(a) b``. Each step ``j`` appends ``A_j = exp(lambda_j d_j)``:
@@ -435,7 +435,7 @@ def _recursion(
     ``V_j' = Ad(A_j^-1) V_j-1' + lambda_j'' d_j + ad(V_j) (lambda_j' d_j)``. At ``j = 1`` (``V_0 = 0``)
     the bracket is ``ad(V_1) V_1 = 0``, and the step starts the rates."""
     value, rate, accel = first, None, None
-    for j, (lam, lam_dot, lam_ddot) in enumerate(_basis(xp, s, order)):
+    for j, (lam, lam_dot, lam_ddot) in enumerate(basis):
         dj = d[..., j, :]
         step = exp(_scaled(xp, lam, dj))
         value = compose(value, step)
@@ -505,9 +505,23 @@ def so3_bspline(
         ``dw_b/du``, shape ``(..., 3)``. The space-frame rates are ``R w_b`` and ``R w_b'``.
     """
     count = _check_spline("so3_bspline", tuple(control.shape), 2, order)
+    i, s = _segment(xp, u, count - order + 1)
+    return _so3_bspline_at(xp, control, i, _basis(xp, s, order), to_matrix, to_quaternion)
+
+
+def _so3_bspline_at(
+    xp: Any,
+    control: Any,
+    i: Any,
+    basis: list[tuple[Any, Any, Any]],
+    to_matrix: Conversion,
+    to_quaternion: Conversion,
+) -> tuple[Any, Any, Any]:
+    """``so3_bspline`` on the segments ``i`` with the basis at their fractions (``_segment``,
+    ``_basis``), which the split SE(3) spline shares."""
+    order = len(basis) + 1
     relative = xp.matmul(xp.swapaxes(control[..., :-1, :, :], -1, -2), control[..., 1:, :, :])
     increments = matrix_to_axis_angle(xp, relative, to_quaternion=to_quaternion)  # (B..., K - 1, 3)
-    i, s = _segment(xp, u, count - order + 1)
     rotation = _gather(xp, control, i[..., None], 2)[..., 0, :, :]
     d = _gather(xp, increments, _consecutive(xp, i, order - 1), 1)
 
@@ -518,8 +532,7 @@ def so3_bspline(
         xp,
         rotation,
         d,
-        s,
-        order,
+        basis,
         exp=lambda v: axis_angle_to_matrix(xp, v, to_matrix=to_matrix),
         compose=lambda a, b: xp.matmul(*match_rank(xp, a, b)),
         transport=transport,
@@ -595,8 +608,7 @@ def se3_bspline(
         xp,
         pose,
         d,
-        s,
-        order,
+        _basis(xp, s, order),
         exp=lambda v: se3_exp(xp, v, to_matrix=to_matrix),
         compose=lambda a, b: se3_compose(xp, a, b),
         transport=transport,
@@ -619,22 +631,19 @@ def _split_bspline(
     the position ``p = p_i + sum_j lambda_j (p_i+j - p_i+j-1)`` with its derivatives in ``u``, as the
     body twist ``(R^T p', w_b)`` and its derivative ``(R^T p'' - w_b x R^T p', w_b')`` (``R'^T = -hat(w_b)
     R^T``)."""
-    rotation, omega, omega_dot = so3_bspline(
-        xp, control[..., :3, :3], u, order=order, to_matrix=to_matrix, to_quaternion=to_quaternion
-    )
-    points = control[..., :3, 3]  # (B..., K, 3)
     i, s = _segment(xp, u, count - order + 1)
+    basis = _basis(xp, s, order)
+    rotation, omega, omega_dot = _so3_bspline_at(xp, control[..., :3, :3], i, basis, to_matrix, to_quaternion)
+    points = control[..., :3, 3]  # (B..., K, 3)
     first = _gather(xp, points, i[..., None], 1)[..., 0, :]
     steps = _gather(xp, points[..., 1:, :] - points[..., :-1, :], _consecutive(xp, i, order - 1), 1)
-    terms = [[_scaled(xp, f, steps[..., j, :]) for f in fs] for j, fs in enumerate(_basis(xp, s, order))]
+    terms = [[_scaled(xp, f, steps[..., j, :]) for f in fs] for j, fs in enumerate(basis)]
     position = first + _sum_terms([t[0] for t in terms])
     velocity, accel = _sum_terms([t[1] for t in terms]), _sum_terms([t[2] for t in terms])
     r_t = xp.swapaxes(rotation, -1, -2)
     v = xp.matmul(r_t, velocity[..., None])[..., 0]
     v_dot = xp.matmul(r_t, accel[..., None])[..., 0] - xp.linalg.cross(omega, v)
-    zero = xp.zeros_like(rotation[..., :1, :])
-    bottom = xp.concat([zero, xp.ones_like(zero[..., :1])], axis=-1)
-    pose = xp.concat([xp.concat([rotation, position[..., None]], axis=-1), bottom], axis=-2)
+    pose = _with_bottom(xp, xp.concat([rotation, position[..., None]], axis=-1))
     return pose, xp.concat([v, omega], axis=-1), xp.concat([v_dot, omega_dot], axis=-1)
 
 
@@ -728,6 +737,4 @@ def split_se3_bspline(xp: Any, packed: Any) -> tuple[Any, Any, Any]:
     ``(0, 0, 0, 1)``, NaN where the row is NaN (the rule for non-finite rows)."""
     top = xp.reshape(packed[..., :12], (*packed.shape[:-1], 3, 4))
     corner = top[..., :1, :1]
-    zero = corner - corner
-    bottom = xp.concat([zero, zero, zero, zero + xp.ones_like(zero)], axis=-1)
-    return xp.concat([top, bottom], axis=-2), packed[..., 12:18], packed[..., 18:]
+    return xp.concat([top, _bottom_row(xp, corner - corner)], axis=-2), packed[..., 12:18], packed[..., 18:]
