@@ -10,7 +10,8 @@
 - the quaternion operations the backends expose directly (standardise, normalise, reorder, the
   uniform sampler) and the helpers the other core modules (``_algebra``, ``_lie``, ``_euler``,
   ``_representations``, ``_statistics``, ``_fisher``) build on: splitting and joining components,
-  :func:`stack_matrix`, :func:`zero_or_nan`, :func:`computed_once`, :func:`cancelling_factor`.
+  :func:`stack_matrix`, :func:`zero_or_nan`, :func:`computed_once`, :func:`small_matmul`,
+  :func:`cancelling_factor`.
 
 ``xp`` is the ``numpy`` or ``torch`` module itself, or ``jax.numpy`` with a few additions
 (:mod:`diffquat.jax._namespace`): the functions here use only what the three share (indexing with
@@ -123,6 +124,22 @@ def computed_once(xp: Any, x: Any) -> Any:
     derivative anywhere."""
     barrier = getattr(xp, "optimization_barrier", None)
     return x if barrier is None else barrier(x)
+
+
+def small_matmul(xp: Any, a: Any, b: Any) -> Any:
+    """``a @ b`` of small matrices, ``(..., n, k)`` times ``(..., k, m)`` (k static), batch shapes
+    broadcast: one ``matmul`` call, except under ``torch.compile`` and ``torch.export`` (the namespace
+    whose ``compiler.is_compiling()`` is true), where it is the sum of k broadcast products. Inductor
+    leaves a batched product of 3x3 blocks on the CPU to a library ``bmm`` outside its fused loop,
+    slower than the whole fused operation; eager torch and XLA (forward + backward) are faster with the
+    product (docs/performance.md, Formula shapes, SE(3))."""
+    compiler = getattr(xp, "compiler", None)
+    if compiler is None or not compiler.is_compiling():
+        return xp.matmul(a, b)
+    out = a[..., :, :1] * b[..., :1, :]
+    for j in range(1, a.shape[-1]):
+        out = out + a[..., :, j : j + 1] * b[..., j : j + 1, :]
+    return out
 
 
 def zero_or_nan(xp: Any, x: Any, trailing: int) -> Any:

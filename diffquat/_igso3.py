@@ -37,6 +37,7 @@ from ._core import (
     cancelling_factor,
     matrix_to_quaternion,
     op,
+    small_matmul,
     unit_quaternion_to_matrix,
 )
 from ._fisher import _constant
@@ -348,7 +349,7 @@ def igso3_score(
     relative = matrix
     if mean is not None:
         mean, matrix = match_rank(xp, mean, matrix)
-        relative = xp.matmul(xp.swapaxes(mean, -1, -2), matrix)
+        relative = small_matmul(xp, xp.swapaxes(mean, -1, -2), matrix)
     # From the relative rotation's quaternion (w >= 0): the angle 2 atan2(s, w) and its gap to pi,
     # 2 atan2(w, s), each without cancellation (pi - omega from a rounded omega would be off by pi's
     # rounding, 1.2e-16, which near pi moves the score by (pi / sigma^2)^2 times as much).

@@ -55,6 +55,7 @@ from ._core import (
     nonfinite_by_arithmetic,
     op,
     quaternion_to_matrix,
+    small_matmul,
     stack_matrix,
     unit_quaternion_to_matrix,
     xyzw_to_wxyz,
@@ -383,7 +384,7 @@ def so3_plus(
     q, poison = match_rank(xp, axis_angle_to_quaternion(xp, delta), poison[..., None])
     step = to_matrix(xp, computed_once(xp, q + poison))
     matrix, step = match_rank(xp, matrix, step)
-    return xp.matmul(matrix, step) if right else xp.matmul(step, matrix)
+    return small_matmul(xp, matrix, step) if right else small_matmul(xp, step, matrix)
 
 
 # A non-finite entry of either matrix makes a row or column of the relative rotation non-finite, which
@@ -416,7 +417,7 @@ def so3_minus(
     right = check_side("so3_minus", side)
     a, b = match_rank(xp, matrix1, matrix2)
     b_t = xp.swapaxes(b, -1, -2)
-    relative = xp.matmul(b_t, a) if right else xp.matmul(a, b_t)
+    relative = small_matmul(xp, b_t, a) if right else small_matmul(xp, a, b_t)
     return matrix_to_axis_angle(xp, relative, to_quaternion=to_quaternion)
 
 

@@ -49,6 +49,7 @@ from ._core import (
     matrix_to_quaternion,
     normalize_quaternion,
     op,
+    small_matmul,
     split_quaternion,
     unit_quaternion_to_matrix,
     wxyz_to_xyzw,
@@ -520,7 +521,7 @@ def _so3_bspline_at(
     """``so3_bspline`` on the segments ``i`` with the basis at their fractions (``_segment``,
     ``_basis``), which the split SE(3) spline shares."""
     order = len(basis) + 1
-    relative = xp.matmul(xp.swapaxes(control[..., :-1, :, :], -1, -2), control[..., 1:, :, :])
+    relative = small_matmul(xp, xp.swapaxes(control[..., :-1, :, :], -1, -2), control[..., 1:, :, :])
     increments = matrix_to_axis_angle(xp, relative, to_quaternion=to_quaternion)  # (B..., K - 1, 3)
     rotation = _gather(xp, control, i[..., None], 2)[..., 0, :, :]
     d = _gather(xp, increments, _consecutive(xp, i, order - 1), 1)
@@ -534,7 +535,7 @@ def _so3_bspline_at(
         d,
         basis,
         exp=lambda v: axis_angle_to_matrix(xp, v, to_matrix=to_matrix),
-        compose=lambda a, b: xp.matmul(*match_rank(xp, a, b)),
+        compose=lambda a, b: small_matmul(xp, *match_rank(xp, a, b)),
         transport=transport,
         bracket=xp.linalg.cross,
     )

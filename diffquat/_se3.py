@@ -44,6 +44,7 @@ from ._core import (
     nonfinite_by_arithmetic,
     op,
     quaternion_to_matrix,
+    small_matmul,
     stack_matrix,
     unit_quaternion_to_matrix,
 )
@@ -189,7 +190,7 @@ def _compose(xp: Any, a: Any, b: Any, term: Any) -> Any:
     # One matrix product, contracting over 3: R1 [R2 | t2]. XLA:CPU compiles the same product
     # contracting over 4 ([R1 | t1] times a 4x4 matrix) into a far slower dot; eager torch runs either
     # as one call (docs/performance.md, SE(3)).
-    top = xp.matmul(a[..., :3, :3], b[..., :3, :]) + a[..., :3, 3:] * row
+    top = small_matmul(xp, a[..., :3, :3], b[..., :3, :]) + a[..., :3, 3:] * row
     return xp.concat([top, row], axis=-2)
 
 
@@ -226,7 +227,7 @@ def se3_inverse(xp: Any, matrix: Any) -> Any:
     term = cancelling_factor(xp, _nonfinite_term(xp, matrix - matrix, 2))
     r_t = xp.swapaxes(matrix[..., :3, :3], -1, -2)
     # R^T t as a matrix-vector product: XLA writes it as a multiply and a sum, eager torch as one call
-    top = xp.concat([r_t + term, term - xp.matmul(r_t, matrix[..., :3, 3:])], axis=-1)
+    top = xp.concat([r_t + term, term - small_matmul(xp, r_t, matrix[..., :3, 3:])], axis=-1)
     return xp.concat([top, _bottom_row(xp, term)], axis=-2)
 
 
@@ -247,7 +248,7 @@ def se3_apply(xp: Any, matrix: Any, points: Any) -> Any:
     term = cancelling_factor(xp, _nonfinite_term(xp, m - m, 2) + _nonfinite_term(xp, p - p, 2))
     # [R | t] times (p + term, 1 + term): the term reaches every component through the product, and
     # no elementwise pass follows it, which inductor would run as a loop over the trailing 3
-    return xp.matmul(m[..., :3, :], xp.concat([p + term, term + xp.ones_like(term)], axis=-2))[..., 0]
+    return small_matmul(xp, m[..., :3, :], xp.concat([p + term, term + xp.ones_like(term)], axis=-2))[..., 0]
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -355,7 +356,7 @@ def se3_adjoint(xp: Any, matrix: Any) -> Any:
         Shape ``(..., 6, 6)``.
     """
     r = matrix[..., :3, :3]
-    return _blocks(xp, r, xp.matmul(so3_hat(xp, matrix[..., :3, 3]), r), r)
+    return _blocks(xp, r, small_matmul(xp, so3_hat(xp, matrix[..., :3, 3]), r), r)
 
 
 @op(xi=(6,))
@@ -459,7 +460,7 @@ def _left_jacobian_inverse(xp: Any, xi: Any) -> Any:
     rho, phi = _split(xi)
     p, r = computed_once(xp, _inverse_coefficients(xp, phi))
     j_inv = _assemble(xp, phi, p, -0.5, r)
-    block = -xp.matmul(xp.matmul(j_inv, _q_block(xp, rho, phi)), j_inv)
+    block = -small_matmul(xp, small_matmul(xp, j_inv, _q_block(xp, rho, phi)), j_inv)
     return _blocks(xp, j_inv, block, j_inv)
 
 
@@ -612,8 +613,8 @@ def se3_interpolate(
         xi = _log(xp, se3_compose(xp, se3_inverse(xp, a), b), to_quaternion)
         return se3_compose(xp, a, se3_exp(xp, s[..., 0] * xi, to_matrix=to_matrix))
     r1, r2 = a[..., :3, :3], b[..., :3, :3]
-    phi = matrix_to_axis_angle(xp, xp.matmul(xp.swapaxes(r1, -1, -2), r2), to_quaternion=to_quaternion)
-    rotation = xp.matmul(r1, axis_angle_to_matrix(xp, s[..., 0] * phi, to_matrix=to_matrix))
+    phi = matrix_to_axis_angle(xp, small_matmul(xp, xp.swapaxes(r1, -1, -2), r2), to_quaternion=to_quaternion)
+    rotation = small_matmul(xp, r1, axis_angle_to_matrix(xp, s[..., 0] * phi, to_matrix=to_matrix))
     translation = a[..., :3, 3:] + s * (b[..., :3, 3:] - a[..., :3, 3:])
     rotation, translation = match_rank(xp, rotation, translation)
     batch = tuple(xp.broadcast_shapes(tuple(rotation.shape[:-2]), tuple(translation.shape[:-2])))

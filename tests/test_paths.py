@@ -254,6 +254,29 @@ def _traced_ops(fn: Any, x: torch.Tensor) -> list[str]:
     return [str(node.target) for node in graph.graph.nodes if node.op in ("call_function", "call_method")]
 
 
+def test_products_of_small_blocks_fuse_under_torch_compile() -> None:
+    """Products of 3x3 blocks (``_core.small_matmul``): one ``matmul`` eager, and under
+    ``torch.compile`` broadcast products that inductor fuses into the operation's loop, where it would
+    leave a ``matmul`` of small blocks to ATen's ``bmm`` outside it (docs/performance.md, Formula
+    shapes): the compiled SE(3) compose and ``so3_plus`` record no matrix product, and compute what
+    the eager ones do."""
+    rng = np.random.default_rng(3)
+    poses = dq.se3_exp(torch.tensor(rng.normal(size=(2, 8, 6))))
+    matrices, delta = poses[0, :, :3, :3].contiguous(), torch.tensor(rng.normal(size=(8, 3)))
+    for fn, x in (
+        (lambda p: dq.se3_compose(p[0], p[1]), poses),
+        (lambda m: dq.so3_plus(m, delta), matrices),
+        (lambda m: dq.so3_minus(m, m.flip(0)), matrices),
+    ):
+        ops = _traced_ops(fn, x)
+        assert not any("matmul" in op or "bmm" in op for op in ops), ops
+        torch._dynamo.reset()
+        compiled = torch.compile(fn, fullgraph=True, dynamic=False, backend="aot_eager")(x)
+        np.testing.assert_allclose(compiled.numpy(), fn(x).numpy(), rtol=1e-12, atol=1e-12)
+    eager = torch.rand(4, 3, 3, dtype=torch.float64), torch.rand(4, 3, 4, dtype=torch.float64)
+    assert torch.equal(_core.small_matmul(torch, *eager), torch.matmul(*eager))
+
+
 @pytest.mark.parametrize("scalar_first", [True, False], ids=["wxyz", "xyzw"])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16], ids=str)
 def test_compiled_public_function_traces_to_the_core_formula(scalar_first: bool, dtype: torch.dtype) -> None:
