@@ -128,14 +128,24 @@ def computed_once(xp: Any, x: Any) -> Any:
 
 def small_matmul(xp: Any, a: Any, b: Any) -> Any:
     """``a @ b`` of small matrices, ``(..., n, k)`` times ``(..., k, m)`` (k static), batch shapes
-    broadcast: one ``matmul`` call, except under ``torch.compile`` and ``torch.export`` (the namespace
-    whose ``compiler.is_compiling()`` is true), where it is the sum of k broadcast products. Inductor
-    leaves a batched product of 3x3 blocks on the CPU to a library ``bmm`` outside its fused loop,
-    slower than the whole fused operation; eager torch and XLA (forward + backward) are faster with the
-    product (docs/performance.md, Formula shapes, SE(3))."""
+    broadcast: one ``matmul`` call in eager torch and NumPy. Where a compiler writes the loops, the
+    value is the sum of k broadcast products, which fuses into the loop of the operation around it:
+    under ``torch.compile`` and ``torch.export`` (``compiler.is_compiling()``), where inductor leaves a
+    batched product of 3x3 blocks on the CPU to a library ``bmm`` outside its fused loop, and on XLA
+    (the namespace's ``diffquat_small_matmul``: the products in value, matmuls in derivative, whose
+    transposes XLA:CPU runs faster than the products' reductions). Eager, the products are slower
+    than one call (docs/performance.md, Formula shapes, SE(3))."""
+    fused = getattr(xp, "diffquat_small_matmul", None)
+    if fused is not None:
+        return fused(a, b)
     compiler = getattr(xp, "compiler", None)
     if compiler is None or not compiler.is_compiling():
         return xp.matmul(a, b)
+    return sum_of_products(a, b)
+
+
+def sum_of_products(a: Any, b: Any) -> Any:
+    """``a @ b`` as the sum over the contracted axis of broadcast products ``a[:, j] b[j, :]``."""
     out = a[..., :, :1] * b[..., :1, :]
     for j in range(1, a.shape[-1]):
         out = out + a[..., :, j : j + 1] * b[..., j : j + 1, :]

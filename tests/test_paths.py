@@ -14,11 +14,14 @@ import math
 from collections.abc import Callable
 from typing import Any
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 import torch
 from cases import CASES_BY_NAME, oracle_quaternion_to_matrix
 
+import diffquat.jax as dj
 import diffquat.torch as dq
 from diffquat import _algebra, _backend, _core, _euler, _lie
 from diffquat.torch._custom import form
@@ -259,7 +262,7 @@ def test_products_of_small_blocks_fuse_under_torch_compile() -> None:
     ``torch.compile`` broadcast products that inductor fuses into the operation's loop, where it would
     leave a ``matmul`` of small blocks to ATen's ``bmm`` outside it (docs/performance.md, Formula
     shapes): the compiled SE(3) compose and ``so3_plus`` record no matrix product, and compute what
-    the eager ones do."""
+    the eager ones do. On jax the same products in value and matmuls in the derivative rule."""
     rng = np.random.default_rng(3)
     poses = dq.se3_exp(torch.tensor(rng.normal(size=(2, 8, 6))))
     matrices, delta = poses[0, :, :3, :3].contiguous(), torch.tensor(rng.normal(size=(8, 3)))
@@ -275,6 +278,12 @@ def test_products_of_small_blocks_fuse_under_torch_compile() -> None:
         np.testing.assert_allclose(compiled.numpy(), fn(x).numpy(), rtol=1e-12, atol=1e-12)
     eager = torch.rand(4, 3, 3, dtype=torch.float64), torch.rand(4, 3, 4, dtype=torch.float64)
     assert torch.equal(_core.small_matmul(torch, *eager), torch.matmul(*eager))
+    # jax: the products in value (no dot in the forward program), matmuls in the derivative rule
+    a, b = (jnp.asarray(p.numpy()) for p in poses)
+    assert "dot_general" not in str(jax.make_jaxpr(dj.se3_compose)(a, b))
+    vjp = jax.make_jaxpr(lambda x, y: jax.vjp(dj.se3_compose, x, y)[1](x))(a, b)
+    assert "dot_general" in str(vjp)
+    np.testing.assert_allclose(np.asarray(dj.se3_compose(a, b)), np.matmul(a, b), rtol=1e-12, atol=1e-12)
 
 
 @pytest.mark.parametrize("scalar_first", [True, False], ids=["wxyz", "xyzw"])
