@@ -32,8 +32,15 @@ jax.config.update("jax_num_cpu_devices", 2)
 # -> 250 s), and LLVM at -O0 (a third off again: jax's check_grads of three ops 55 s -> 36 s). Neither
 # changes what IEEE arithmetic computes, and test_values.py checks every op at every value case under
 # XLA's defaults too, in a subprocess, against the same oracles. Read when jax starts its CPU backend
-# (at first use, below); a flag the caller set is kept.
-COMPILE_SPEED_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_backend_optimization_level=0")
+# (at first use, below); a flag the caller set is kept. And one LLVM module, not 32 split apart for
+# parallel code generation, which the two workers' cores do not have to spare: cloning the parts
+# (llvm::SplitModule) was 11% of the largest derivative program's run (SQUAD's: its compilation
+# 45 s -> 36 s; six rows of test_jax_derivatives 34.5 s -> 32.3 s of compiling).
+COMPILE_SPEED_FLAGS = (
+    "--xla_cpu_use_fusion_emitters=false",
+    "--xla_backend_optimization_level=0",
+    "--xla_cpu_parallel_codegen_split_count=1",
+)
 for _flag in COMPILE_SPEED_FLAGS:
     if _flag.split("=")[0] not in os.environ.get("XLA_FLAGS", ""):
         os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_flag}".strip()
