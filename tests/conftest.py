@@ -29,13 +29,12 @@ from cases import CASES, DTYPES, HOST_DTYPES, OPS, concatenate_cases, host_cast
 jax.config.update("jax_num_cpu_devices", 2)
 # XLA compiles the suite's programs for speed of compiling, not of running: its classic CPU emitters,
 # not its default fusion emitters (about half the compile time: a jax-heavy third of the suite 366 s
-# -> 250 s), and LLVM at -O0 (a third off again: jax's check_grads of three ops 55 s -> 36 s). Neither
-# changes what IEEE arithmetic computes, and test_values.py checks every op at every value case under
-# XLA's defaults too, in a subprocess, against the same oracles. Read when jax starts its CPU backend
-# (at first use, below); a flag the caller set is kept. And one LLVM module, not 32 split apart for
-# parallel code generation, which the two workers' cores do not have to spare: cloning the parts
-# (llvm::SplitModule) was 11% of the largest derivative program's run (SQUAD's: its compilation
-# 45 s -> 36 s; six rows of test_jax_derivatives 34.5 s -> 32.3 s of compiling).
+# -> 250 s), LLVM at -O0 (a third off again: jax's check_grads of three ops 55 s -> 36 s), and one
+# LLVM module, not 32 split apart for parallel code generation, which the two workers' cores do not
+# have to spare (cloning the parts was 11% of the largest derivative program's run: SQUAD's compiled
+# in 36 s, not 45 s). None of them changes what IEEE arithmetic computes, and test_values.py checks
+# every op at every value case under XLA's defaults too, in a subprocess, against the same oracles.
+# Read when jax starts its CPU backend (at first use, below); a flag the caller set is kept.
 COMPILE_SPEED_FLAGS = (
     "--xla_cpu_use_fusion_emitters=false",
     "--xla_backend_optimization_level=0",
