@@ -13,6 +13,8 @@ from ._core import (
     Conversion,
     _negative_canonical,
     computed_once,
+    constants,
+    eager_form,
     join_quaternion,
     matrix_to_quaternion,
     nonfinite_by_arithmetic,
@@ -90,6 +92,35 @@ def quaternion_multiply(xp: Any, p: Any, q: Any, *, scalar_first: bool = True) -
     p, q = match_rank(xp, p, q)
     out = hamilton(split_quaternion(p, scalar_first), split_quaternion(q, scalar_first))
     return join_quaternion(xp, *out, scalar_first)
+
+
+def _hamilton_forms() -> tuple[list[Any], ...]:
+    """(16, 4): row ``4 i + j`` holds the coefficients of ``p_i q_j`` (scalar first) in the Hamilton
+    product (:func:`hamilton`)."""
+    c = [[0.0] * 4 for _ in range(16)]
+    terms = (
+        ((0, 0, 1), (1, 1, -1), (2, 2, -1), (3, 3, -1)),
+        ((0, 1, 1), (1, 0, 1), (2, 3, 1), (3, 2, -1)),
+        ((0, 2, 1), (2, 0, 1), (3, 1, 1), (1, 3, -1)),
+        ((0, 3, 1), (3, 0, 1), (1, 2, 1), (2, 1, -1)),
+    )
+    for k, row in enumerate(terms):
+        for i, j, v in row:
+            c[4 * i + j][k] = float(v)
+    return (c,)
+
+
+@eager_form(of=quaternion_multiply)
+def quaternion_multiply_eager(xp: Any, p: Any, q: Any, *, scalar_first: bool = True) -> Any:
+    """:func:`quaternion_multiply`, eager form: the outer product ``p q^T`` contracted with the constant
+    (16, 4) coefficients of the Hamilton product, one ``matmul`` (five operations in all for a batch of
+    one dimension). Scalar-last storage is reordered in and out (``roll``), so that both orders sum the
+    same products in the same order, bit for bit."""
+    if not scalar_first:
+        p, q = xp.roll(p, 1, -1), xp.roll(q, 1, -1)
+    (c,) = constants(xp, p, _hamilton_forms)
+    out = xp.matmul((p[..., :, None] * q[..., None, :]).flatten(-2), c)
+    return out if scalar_first else xp.roll(out, -1, -1)
 
 
 @op(q=(4,))

@@ -89,25 +89,38 @@ def nonfinite_rows(xp: Any, out: Any, arrays: list[tuple[Any, tuple[int, ...]]])
 
     ``arrays`` are the inputs with their registered trailing shapes; their batch shapes broadcast to
     ``out``'s batch shape, and the rest of ``out``'s dimensions are one element's output. Why a rule
-    of its own: left to the arithmetic, a NaN reaches some entries of a row and not others (a matrix entry the
-    selected candidate does not read), and ``inf`` turns into NaN or 0 depending on the path, so each
-    path would document its own result. This one is a selection (no arithmetic on the bad values
-    outside their row), so nothing leaks into other rows, and its derivative is the identity on the
-    good rows and 0 from the output of the bad ones."""
-    # Which rows are bad: _core.zero_or_nan of each input, summed (NaN exactly in the bad rows): one
-    # product and one sum per input, where isfinite, a negation and an any per trailing axis would
-    # each take a pass over memory in eager torch (docs/performance.md, Formula shapes).
+    of its own: left to the arithmetic, a NaN reaches some entries of a row and not others (a matrix
+    entry the selected candidate does not read), and ``inf`` turns into NaN or 0 depending on the
+    path, so each path would document its own result.
+
+    The rule is arithmetic, not a selection: ``out + sum(0 * x)`` over each input's row, which adds 0
+    to a finite row (``-0`` becomes ``+0``, equal) and NaN to every entry of a bad one, nothing across
+    rows. ``x`` enters as a constant of differentiation (``_core.cancelling_factor``), so the rule
+    adds no operation to a backward pass and the derivative is the formula's own: the identity on the
+    good rows, NaN or 0 on the bad ones. Two or three operations per input in eager torch (a product,
+    a sum, the addition; a view where the trailing ranks differ), where a selection took nine
+    (``isfinite``'s four, the NaN constant, the mask's view, the ``where``)."""
     acc = None
+    batch_rank = 0
     for x, trailing in arrays:
-        z = _core.zero_or_nan(xp, x, len(trailing))
+        batch_rank = max(batch_rank, x.ndim - len(trailing))
+    out_trailing = out.ndim - batch_rank
+    for x, trailing in arrays:
+        # _core.zero_or_nan, its sum kept as unit axes where the trailing ranks agree
+        z = _core.cancelling_factor(xp, x) * 0.0
+        axes = tuple(range(-len(trailing), 0))
+        if len(trailing) == out_trailing:
+            z = xp.sum(z, axis=axes, keepdims=True) if trailing else z
+        else:
+            z = xp.sum(z, axis=axes) if trailing else z
+            z = xp.reshape(z, tuple(z.shape) + (1,) * out_trailing)
         if acc is None:
             acc = z
         else:
             rank = max(acc.ndim, z.ndim)
             acc = _match_rank(xp, acc, rank) + _match_rank(xp, z, rank)
     assert acc is not None
-    good = xp.isfinite(acc)
-    return xp.where(xp.reshape(good, tuple(good.shape) + (1,) * (out.ndim - good.ndim)), out, xp.nan)
+    return out + _match_rank(xp, acc, out.ndim)
 
 
 @dataclass(frozen=True)
@@ -132,6 +145,8 @@ class Backend:
         static: a context manager around the checks of shapes (torch: under ``torch.jit.trace``
             sizes are traced tensors, and each comparison of one warns that it is read as a constant,
             which for these checks is what is meant).
+        choose: ``(core_fn, first input) -> the function to run``: torch runs a map's eager form
+            (``_core.EAGER_FORMS``) outside graph capture; the others run the core function.
     """
 
     xp: Any
@@ -145,6 +160,7 @@ class Backend:
     float32: Any
     guard: Callable[[Any], contextlib.AbstractContextManager[Any]] = lambda x: contextlib.nullcontext()
     static: Callable[[], contextlib.AbstractContextManager[Any]] = contextlib.nullcontext
+    choose: Callable[[Callable[..., Any], Any], Callable[..., Any]] = lambda fn, x: fn
 
     def compute_dtype(self, dtype: Any) -> Any:
         # float16 and bfloat16 (and anything narrower) are computed in float32: the epsilons and
@@ -217,7 +233,7 @@ class Backend:
         compute = self.compute_dtype(dtype)
         inputs = [x if x is None or x.dtype == compute else self.astype(x, compute) for x in checked]
         with self.guard(inputs[0]):
-            out = core_fn(self.xp, *inputs, **options)
+            out = self.choose(core_fn, inputs[0])(self.xp, *inputs, **options)
             if fname not in _core.NONFINITE_BY_ARITHMETIC:
                 rows = [(x, t) for x, t in zip(inputs, SHAPES[fname].values(), strict=True) if x is not None]
                 out = nonfinite_rows(self.xp, out, rows)

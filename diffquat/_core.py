@@ -187,8 +187,8 @@ def quaternion_to_matrix(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
     Args:
         q: quaternions, shape ``(..., 4)``: (w, x, y, z) if ``scalar_first`` else (x, y, z, w).
             They need not be unit: ``q`` and ``c * q`` (c != 0) give the same matrix, so a network can
-            feed its raw 4-vector output. The zero quaternion (squared norm below the smallest normal
-            number of the compute dtype) gives the identity, with a finite (zero) gradient.
+            feed its raw 4-vector output, of any size down to the smallest subnormal number. The zero
+            quaternion (all four components zero) gives the identity, with a zero gradient.
         scalar_first: storage order of ``q``; the default is scalar first (w, x, y, z).
 
     Returns:
@@ -237,10 +237,10 @@ def _unit_components(xp: Any, q: Any, scalar_first: bool) -> tuple[Any, Any, Any
     lies in [1, 4]. Through ``1 / sqrt(|q|^2)`` instead, every derivative meets powers of ``1 / |q|^2``:
     the second derivative overflowed float32 from |q| <= 1e-13 and float64 from 1e-150 on, though it is
     only of size ``1 / |q|^2``, and ``|q|^2`` itself overflows float32 from |q| ~ 1.8e19. This way the
-    largest intermediate derivative of second order is ``1 / max|q_i|^2``, and every finite norm whose
-    square is a normal number works. The zero quaternion (squared norm below the smallest normal number)
-    takes ``1 / |q| = 0``, so all components are 0 (the identity rotation, with a zero gradient); the
-    double wheres keep the divisions and their derivatives finite in the branch that is thrown away."""
+    largest intermediate derivative of second order is ``1 / max|q_i|^2``, and every finite non-zero
+    quaternion works, subnormal ones included. The zero quaternion takes ``1 / |q| = 0``, so all
+    components are 0 (the identity rotation, with a zero gradient); the double wheres keep the divisions
+    and their derivatives finite in the branch that is thrown away."""
     w, x, y, z = unstack_quaternion(xp, q, scalar_first)
     big, nonzero = _unit_scale(xp, w, x, y, z)
     # big cancels out of both results (q / big / |q / big| and |q / big|^-1 / big), so it is a
@@ -258,11 +258,12 @@ def _unit_components(xp: Any, q: Any, scalar_first: bool) -> tuple[Any, Any, Any
 def _unit_scale(xp: Any, w: Any, x: Any, y: Any, z: Any) -> tuple[Any, Any]:
     """The largest component of a quaternion (1 for the zero quaternion) and whether it is not the zero
     quaternion: the divisor and the mask of :func:`_unit_components`."""
-    n2 = w * w + x * x + y * y + z * z
-    # "not below", not ">=": a NaN row must count as non-zero, so that the NaN reaches the scale and
-    # with it every entry of the row (NONFINITE_BY_ARITHMETIC), not only those that read it.
-    nonzero = ~(n2 < xp.finfo(n2.dtype).tiny)
     big = xp.maximum(xp.maximum(xp.abs(w), xp.abs(x)), xp.maximum(xp.abs(y), xp.abs(z)))
+    # "not zero", not "> 0": a NaN row must count as non-zero, so that the NaN reaches the scale and
+    # with it every entry of the row (NONFINITE_BY_ARITHMETIC), not only those that read it. Every
+    # other quaternion, subnormal components included, is divided to a largest component of 1, the
+    # eager form's test too (quaternion_to_matrix_eager): one rule on every path.
+    nonzero = ~(big == 0)
     return xp.where(nonzero, big, 1.0), nonzero
 
 
@@ -603,18 +604,24 @@ def quaternions_from_uniform(xp: Any, uniform: Any, *, scalar_first: bool = True
 
 
 Rule = tuple[Callable[..., Any], Callable[..., Any], Callable[..., Any]]
+# (prepare, forward, tangent, cotangent, finish): see :func:`eager_rules`
+EagerRule = tuple[Callable[..., Any], ...]
 
 
-def registered_conversions(register: Callable[[str, Rule], Conversion]) -> dict[str, Conversion]:
+def registered_conversions(
+    register: Callable[[str, Rule, EagerRule | None], Conversion],
+) -> dict[str, Conversion]:
     """``quaternion_to_matrix`` and ``matrix_to_quaternion`` as a backend evaluates them, by name, each
-    ``(xp, x, *, scalar_first=True)``: ``register(name, rule)`` turns one storage order's
-    :func:`derivative_rules` into a function ``(xp, x)`` (torch: an ``autograd.Function``, jax: a
-    ``custom_jvp``, numpy: the forward itself). Every backend binds its public conversions and the
+    ``(xp, x, *, scalar_first=True)``: ``register(name, rule, eager)`` turns one storage order's
+    :func:`derivative_rules` (and its :func:`eager_rules`, where the map has an eager form, else None)
+    into a function ``(xp, x)`` (torch: an ``autograd.Function``, jax: a ``custom_jvp``, numpy: the
+    forward itself). Every backend binds its public conversions and the
     conversion step of every composite to these, so all of them reach a conversion the same way."""
     rules = {order: derivative_rules(order) for order in (True, False)}
+    eager = {order: eager_rules(order) for order in (True, False)}
     out: dict[str, Conversion] = {}
     for name in ("quaternion_to_matrix", "matrix_to_quaternion"):
-        by_order = {order: register(name, rules[order][name]) for order in rules}
+        by_order = {order: register(name, rules[order][name], eager[order].get(name)) for order in rules}
 
         def conversion(xp: Any, x: Any, *, scalar_first: bool = True, _by_order: Any = by_order) -> Any:
             return _by_order[bool(scalar_first)](xp, x)
@@ -656,4 +663,256 @@ def derivative_rules(scalar_first: bool) -> dict[str, Rule]:
     return {
         "quaternion_to_matrix": (q2m, q2m_tangent, q2m_cotangent),
         "matrix_to_quaternion": (m2q, m2q_tangent, m2q_cotangent),
+    }
+
+
+# ---------------------------------------------------------------------------------------------------
+# Eager forms. Eager torch pays per ATen operation (a dispatch on the CPU, a kernel launch on a GPU),
+# not per flop: the forms below compute the same maps as the componentwise formulas above in a handful
+# of vectorised operations over the (..., 4) and (..., 3, 3) axes (products with constant coefficient
+# matrices, one reduction, one division). They take torch's signatures (``torch.linalg.vector_norm``,
+# ``addmm``, ``clamp_min``); the compilers (inductor, XLA) and NumPy keep the componentwise formulas,
+# which fuse. ``diffquat.torch._custom`` chooses between the two, in the one place that decides eager
+# against capture; the test table runs every row through both.
+# ---------------------------------------------------------------------------------------------------
+
+# Eager forms of maps whose derivative autodiff takes (no written-out rule), by the name of the
+# componentwise core function they stand beside: ``eager_form(of=...)`` registers one, and the torch
+# backend's Backend calls it in place of the componentwise function outside graph capture
+# (``diffquat.torch._custom.chosen``).
+EAGER_FORMS: dict[str, Callable[..., Any]] = {}
+
+
+def eager_form(of: Callable[..., Any]) -> Callable[[F], F]:
+    """Register the decorated function as the eager form of the core function ``of``: the same
+    signature, the same map to rounding, few vectorised operations."""
+
+    def register(fn: F) -> F:
+        EAGER_FORMS[of.__name__] = fn
+        return fn
+
+    return register
+
+
+_CONSTANTS: dict[tuple[Any, ...], Any] = {}
+
+
+def constants(xp: Any, like: Any, make: Callable[[], tuple[list[Any], ...]]) -> tuple[Any, ...]:
+    """The constant arrays ``make()`` (nested lists) in ``like``'s dtype and device, made once per map,
+    dtype and device: making one on every call is an operation (a host-to-device copy on a GPU), and
+    a map's forward makes all of them, those its rules read included, so that no backward pass makes
+    one either."""
+    key = (make, like.dtype, like.device)
+    value = _CONSTANTS.get(key)
+    if value is None:
+        value = _CONSTANTS[key] = tuple(
+            xp.tensor(rows, dtype=xp.int64 if _integers(rows) else like.dtype, device=like.device)
+            for rows in make()
+        )
+    return value
+
+
+def _integers(rows: list[Any]) -> bool:
+    """Whether nested lists hold Python ints (an index table) rather than floats."""
+    first = rows
+    while isinstance(first, list):
+        first = first[0]
+    return isinstance(first, int)
+
+
+def _quadratic_forms() -> list[list[float]]:
+    """(16, 10): row ``4 i + j`` holds the coefficients of ``u_i u_j`` (symmetrised; u scalar first) in
+    the nine entries of ``P(u) = |u|^2 R(u / |u|)`` (row-major, Kuipers' matrix) and, in the tenth
+    column, ``|u|^2``."""
+    w, x, y, z = 0, 1, 2, 3
+    entries = [
+        [(w, w, 1), (x, x, 1), (y, y, -1), (z, z, -1)], [(x, y, 2), (w, z, -2)], [(x, z, 2), (w, y, 2)],
+        [(x, y, 2), (w, z, 2)], [(w, w, 1), (x, x, -1), (y, y, 1), (z, z, -1)], [(y, z, 2), (w, x, -2)],
+        [(x, z, 2), (w, y, -2)], [(y, z, 2), (w, x, 2)], [(w, w, 1), (x, x, -1), (y, y, -1), (z, z, 1)],
+        [(w, w, 1), (x, x, 1), (y, y, 1), (z, z, 1)],
+    ]  # fmt: skip
+    c = [[0.0] * 10 for _ in range(16)]
+    for k, terms in enumerate(entries):
+        for i, j, v in terms:
+            c[4 * i + j][k] += v / 2
+            c[4 * j + i][k] += v / 2
+    return c
+
+
+def unit_scale(xp: Any, q: Any) -> Any:
+    """``q / max(max_i |q_i|, tiny)``: components in [-1, 1], the largest of magnitude 1, so the squared
+    norm lies in [1, 4] (the zero quaternion stays 0). The scale is a constant of differentiation: the
+    maps it feeds are invariant to it (:func:`cancelling_factor`). Three operations eager."""
+    big = xp.linalg.vector_norm(q, float("inf"), -1, True).clamp_min(xp.finfo(q.dtype).tiny)
+    return q / cancelling_factor(xp, big)
+
+
+def quaternion_to_matrix_eager(xp: Any, u: Any) -> tuple[Any, Any]:
+    """:func:`quaternion_to_matrix` of ``u`` = :func:`unit_scale` of q, eager form: ``(R9, n)``, the nine
+    entries ``(B, 9)`` (``B`` the flattened batch) and ``n = |u|^2`` ``(B, 1)``.
+
+    ``R = P(u) / |u|^2`` with ``P`` the quadratic forms of :func:`_quadratic_forms`: the outer product
+    ``u u^T`` contracted with the constant (16, 10) matrix, whose tenth column is ``|u|^2`` itself, and a
+    bias of ``tiny`` on the diagonal and the norm, so that the zero quaternion gives ``tiny I / tiny =
+    I`` exactly (the documented identity). For every other ``u``, ``|u|^2 >= 1``: the bias changes an
+    entry by at most ``tiny`` (1.2e-38 in float32), below the rounding of any entry of size 1. A NaN or
+    an infinity in ``q`` makes ``n`` NaN, and with it every entry (NONFINITE_BY_ARITHMETIC). Eight
+    operations: two views, the product, a view, ``addmm``, two slices, the division."""
+    c, _, bias = constants(xp, u, _q2m_constants)
+    p = xp.addmm(bias, (u[..., :, None] * u[..., None, :]).reshape(-1, 16), c)
+    n = p[:, 9:]
+    return p[:, :9] / n, n
+
+
+def quaternion_to_matrix_eager_cotangent(
+    xp: Any, u: Any, r: Any, n: Any, g: Any | None, gn: Any | None
+) -> Any:
+    """Reverse mode of :func:`quaternion_to_matrix_eager`: ``dL/du`` for ``g = dL/dR9`` ``(B, 9)`` and
+    ``gn = dL/dn`` (None where not asked for; a second derivative asks for it).
+
+    ``R_k = P_k(u) / n`` with ``P_k = u^T C_k u`` and ``n = u^T u``:
+    ``dL/du = (2 / n) (sum_k g_k C_k - (g . R) I) u``, the bracket one product of ``[g, g . R]`` with
+    the transposed coefficients (the norm's column negated, the factor 2 folded in), then one
+    contraction with ``u``. It is orthogonal to ``u`` (the map is scale invariant). ``n``'s own
+    cotangent adds ``2 gn u``."""
+    radial = None if gn is None else 2.0 * u * gn.view(*u.shape[:-1], 1)
+    if g is None:
+        return radial
+    _, ct, _ = constants(xp, u, _q2m_constants)
+    m = xp.cat([g, (g * r).sum(-1, keepdim=True)], -1) @ ct
+    gu = (m.view(*u.shape, 4) * u[..., None, :]).sum(-1) / n.view(*u.shape[:-1], 1)
+    return gu if radial is None else gu + radial
+
+
+def _cotangent_forms() -> list[list[float]]:
+    """(10, 16): the transpose of :func:`_quadratic_forms`, times 2, its norm row negated."""
+    c = _quadratic_forms()
+    return [[(-2.0 if k == 9 else 2.0) * c[i][k] for i in range(16)] for k in range(10)]
+
+
+def _q2m_constants() -> tuple[list[Any], ...]:
+    # the bias: tiny on the diagonal and the norm (the zero quaternion's identity); float32's tiny is
+    # representable in every compute dtype (float32, float64)
+    tiny = 1.1754943508222875e-38
+    bias = [tiny, 0.0, 0.0, 0.0, tiny, 0.0, 0.0, 0.0, tiny, tiny]
+    return _quadratic_forms(), _cotangent_forms(), bias
+
+
+def _batch_matrix(xp: Any, q: Any, r9: Any) -> Any:
+    """The eager form's ``(B, 9)`` entries as ``(..., 3, 3)`` in the batch shape of ``q``."""
+    return r9.view(*q.shape[:-1], 3, 3)
+
+
+def _flat_matrix(xp: Any, matrix: Any) -> Any:
+    """``(..., 3, 3)`` as ``(B, 9)``, the batch flattened (a view where the layout allows)."""
+    return matrix.reshape(-1, 9)
+
+
+def _candidate_forms() -> list[list[float]]:
+    """(9, 20): the four candidates ``c_k = 4 q_k q`` of :func:`_m2q_candidates` and their pivots
+    ``t_k = 4 q_k^2``, each candidate's components in the storage order followed by its pivot (row
+    ``k`` of the (4, 5) layout), as linear forms in the nine entries of a quarter of the matrix; the
+    pivots' constant is the bias (:func:`_candidate_bias`)."""
+    m = {(a, b): 3 * a + b for a in range(3) for b in range(3)}
+    diag = ((1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1))  # t_k - 1 in m00, m11, m22
+    off = {  # 4 q_i q_j (i < j, scalar-first indices) from two off-diagonal entries
+        (0, 1): ((2, 1), (1, 2), -1), (0, 2): ((0, 2), (2, 0), -1), (0, 3): ((1, 0), (0, 1), -1),
+        (1, 2): ((0, 1), (1, 0), 1), (1, 3): ((0, 2), (2, 0), 1), (2, 3): ((1, 2), (2, 1), 1),
+    }  # fmt: skip
+    order = (0, 1, 2, 3)
+    c = [[0.0] * 20 for _ in range(9)]
+    for k in range(4):
+        for slot, i in enumerate((*order, k)):
+            col = 5 * k + slot
+            if i == k:  # the pivot
+                for a in range(3):
+                    c[m[a, a]][col] += 0.25 * diag[k][a]
+            else:
+                first, second, sign = off[min(i, k), max(i, k)]
+                c[m[first]][col] += 0.25
+                c[m[second]][col] += 0.25 * sign
+    return c
+
+
+def _candidate_bias() -> list[float]:
+    """The pivots' constant, a quarter, at every pivot of :func:`_candidate_forms`' layout."""
+    return [0.25 if i == k else 0.0 for k in range(4) for i in (0, 1, 2, 3, k)]
+
+
+def _m2q_constants() -> tuple[list[Any], ...]:
+    forms = _candidate_forms()
+    transposed = [[forms[r][col] for r in range(9)] for col in range(20)]
+    # candidate k's components in the (B, 20) layout: 5 k + slot
+    index = [[5 * k + slot for slot in range(4)] for k in range(4)]
+    # the first non-zero component decides the canonical sign: weights 8, 4, 2, 1 from w to z
+    weights = [[8.0], [4.0], [2.0], [1.0]]
+    return forms, _candidate_bias(), transposed, index, weights
+
+
+def matrix_to_quaternion_eager(xp: Any, m9: Any) -> tuple[Any, Any]:
+    """:func:`matrix_to_quaternion` of the ``(B, 9)`` entries, eager form: ``(q, index)``, the unit
+    quaternion in canonical sign ``(B, 4)`` and the positions of the chosen candidate's components in
+    the (B, 20) layout of :func:`_candidate_forms` (for the cotangent).
+
+    The same method as the componentwise form: the four candidates and their pivots are one ``addmm``
+    of the entries with constant forms; the largest pivot (the first of equal ones, as the two-level
+    choice of :func:`_m2q_choice`) picks one candidate by a gather; it is divided by its largest
+    component (no square can overflow) and normalised. The canonical sign is that of the first non-zero
+    component: the signs (+-1, 0) weighted 8, 4, 2, 1 sum to a number of that sign. A NaN or an
+    infinity anywhere reaches every component: every candidate reads all nine entries, and the largest
+    component propagates it (NONFINITE_BY_ARITHMETIC)."""
+    forms, bias, _, index, weights = constants(xp, m9, _m2q_constants)
+    k20 = xp.addmm(bias, m9, forms)
+    chosen = index[k20[:, 4::5].argmax(-1)]
+    c = k20.gather(-1, chosen)
+    c = c / xp.linalg.vector_norm(c, float("inf"), -1, True)
+    sign = xp.sgn(xp.sgn(c) @ weights)
+    return c * (sign / xp.linalg.vector_norm(c, 2, -1, True)), chosen
+
+
+def matrix_to_quaternion_eager_cotangent(
+    xp: Any, m9: Any, q: Any, chosen: Any, g: Any | None, _: Any = None
+) -> Any:
+    """Reverse mode of :func:`matrix_to_quaternion_eager`: ``dL/dm9`` for ``g = dL/dq``.
+
+    ``q = c / (q . c)`` for the chosen candidate ``c`` (``q . c = +-|c|``), affine in the entries, so
+    ``dL/dc = (g - q (q . g)) / (q . c)``, scattered into the chosen candidate's slots and taken back to
+    the entries by the transposed forms. ``c`` is rebuilt from ``m9``, so that a second derivative
+    sees its dependence on the matrix."""
+    if g is None:
+        return None
+    forms, bias, transposed, _, _ = constants(xp, m9, _m2q_constants)
+    c = xp.addmm(bias, m9, forms).gather(-1, chosen)
+    gc = (g - q * (q * g).sum(-1, keepdim=True)) / (q * c).sum(-1, keepdim=True)
+    return m9.new_zeros((m9.shape[0], 20)).scatter(-1, chosen, gc) @ transposed
+
+
+def eager_rules(scalar_first: bool) -> dict[str, EagerRule]:
+    """The eager forms of the conversions in one storage order, as torch registers them beside
+    :func:`derivative_rules`: ``(prepare, forward, cotangent, finish)`` with ``u = prepare(xp, x)``
+    (plain operations: a range scaling, a flattening view; scalar-last storage reordered, so that the
+    forms compute in one order and the two storage orders give the same numbers bit for bit),
+    ``forward(xp, u) -> (y, aux)``, ``cotangent(xp, u, y, aux, gy, gaux)`` and the result ``finish(xp,
+    x, y)`` (a view; reordered back)."""
+
+    def q2m_prepare(xp: Any, q: Any) -> Any:
+        return unit_scale(xp, q if scalar_first else xp.roll(q, 1, -1))
+
+    def m2q_finish(xp: Any, matrix: Any, q: Any) -> Any:
+        q = q.view(*matrix.shape[:-2], 4)
+        return q if scalar_first else xp.roll(q, -1, -1)
+
+    return {
+        "quaternion_to_matrix": (
+            q2m_prepare,
+            quaternion_to_matrix_eager,
+            quaternion_to_matrix_eager_cotangent,
+            _batch_matrix,
+        ),
+        "matrix_to_quaternion": (
+            _flat_matrix,
+            matrix_to_quaternion_eager,
+            matrix_to_quaternion_eager_cotangent,
+            m2q_finish,
+        ),
     }

@@ -152,7 +152,7 @@ _B = Backend(
 
 # The conversions as every backend binds them (diffquat._core.registered_conversions); NumPy has no
 # derivatives to register, so each is its formula.
-_CONVERSIONS = _core.registered_conversions(lambda name, rule: rule[0])
+_CONVERSIONS = _core.registered_conversions(lambda name, rule, _: rule[0])
 _Q2M, _M2Q = _CONVERSIONS["quaternion_to_matrix"], _CONVERSIONS["matrix_to_quaternion"]
 
 

@@ -159,7 +159,7 @@ _B = Backend(
 # through the selection, about twice the work forward + backward), quaternion_to_matrix as its formula,
 # whose autodiff XLA compiles as well as the rule's transpose.
 _CONVERSIONS = _core.registered_conversions(
-    lambda name, rule: custom_derivative(rule[0], rule[1]) if name == "matrix_to_quaternion" else rule[0]
+    lambda name, rule, _: custom_derivative(rule[0], rule[1]) if name == "matrix_to_quaternion" else rule[0]
 )
 _Q2M, _M2Q = _CONVERSIONS["quaternion_to_matrix"], _CONVERSIONS["matrix_to_quaternion"]
 

@@ -28,7 +28,7 @@ from .._types import (
     Side,
     SplineMode,
 )
-from ._custom import custom_derivative, refuse_onnx
+from ._custom import choose, custom_derivative, refuse_onnx
 
 __all__ = [
     "angular_acceleration",
@@ -139,7 +139,21 @@ def _result_type(xs: list[Any]) -> torch.dtype:
     integer and boolean tensors, lower in the category order, decide nothing."""
     floats = [x for x in xs if isinstance(x, Tensor) and x.dtype.is_floating_point]
     pool = [x.dtype for x in floats if x.ndim > 0] or [x.dtype for x in floats]
-    return functools.reduce(torch.promote_types, pool) if pool else torch.get_default_dtype()
+    return functools.reduce(_promote, pool) if pool else torch.get_default_dtype()
+
+
+# torch.promote_types is an ATen operation (a dispatch per call); validation dispatches none, so the
+# pairs met are remembered (a handful of dtypes).
+_PROMOTED: dict[tuple[torch.dtype, torch.dtype], torch.dtype] = {}
+
+
+def _promote(a: torch.dtype, b: torch.dtype) -> torch.dtype:
+    if a == b:
+        return a
+    promoted = _PROMOTED.get((a, b))
+    if promoted is None:
+        promoted = _PROMOTED[(a, b)] = torch.promote_types(a, b)
+    return promoted
 
 
 def _without_autocast(x: Tensor) -> contextlib.AbstractContextManager[Any]:
@@ -178,6 +192,7 @@ _B = Backend(
     float32=torch.float32,
     guard=_without_autocast,
     static=_static_shapes,
+    choose=choose,
 )
 
 
@@ -185,7 +200,7 @@ _B = Backend(
 # autograd.Function in eager mode, the formula under capture (see _custom.form). The public
 # functions and every composite's conversion step call these.
 _CONVERSIONS = _core.registered_conversions(
-    lambda name, rule: custom_derivative(*rule, formula_when_captured=True)
+    lambda name, rule, eager: custom_derivative(*rule, formula_when_captured=True, eager=eager)
 )
 _Q2M, _M2Q = _CONVERSIONS["quaternion_to_matrix"], _CONVERSIONS["matrix_to_quaternion"]
 

@@ -27,8 +27,9 @@ implicit function theorem) may also make its forward one opaque operator (``resu
 
 from __future__ import annotations
 
+import contextlib
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any, Literal
 
 import torch
@@ -36,6 +37,8 @@ from torch import Tensor
 from torch.autograd import forward_ad
 from torch.autograd.forward_ad import _set_fwd_grad_enabled
 from torch.jit._trace import is_tracing
+
+from .._core import EAGER_FORMS
 
 Formula = Callable[[Any, Tensor, Tensor, Tensor], Tensor]
 
@@ -57,12 +60,40 @@ def form(x: Tensor) -> Form:
       alone): the Function's forward alone, the same formula and so the same value bit for bit,
       without its bookkeeping (binding its signature, the copy of ``x`` its ``jvp`` reads: a pass over
       the input at large N)."""
-    if torch.compiler.is_compiling() or is_tracing():  # type: ignore[no-untyped-call]
+    if _FORCED or torch.compiler.is_compiling() or is_tracing():  # type: ignore[no-untyped-call]
         return "captured"
     # forward_ad's level counter is the one record of an open dual level (there is no public accessor).
     if (x.requires_grad and torch.is_grad_enabled()) or forward_ad._current_level >= 0:
         return "rule"
     return "formula"
+
+
+# Tests run the table through the componentwise forms in eager mode too (``componentwise()``).
+_FORCED: list[Form] = []
+
+
+@contextlib.contextmanager
+def componentwise() -> Iterator[None]:
+    """Run every map in its componentwise form (the captured one) while the context is open, eager:
+    how the test table checks both forms of a map on every row."""
+    _FORCED.append("captured")
+    try:
+        yield
+    finally:
+        _FORCED.pop()
+
+
+def eager(x: Tensor) -> bool:
+    """Whether a call takes a map's eager form: everywhere but under graph capture (:func:`form`)."""
+    return not _FORCED and not (torch.compiler.is_compiling() or is_tracing())  # type: ignore[no-untyped-call]
+
+
+def choose(core_fn: Callable[..., Any], x: Tensor) -> Callable[..., Any]:
+    """The function a call of the core function ``core_fn`` on ``x`` runs: its eager form where it has
+    one (``_core.EAGER_FORMS``) and the call is eager, else ``core_fn`` itself."""
+    if eager(x):
+        return EAGER_FORMS.get(core_fn.__name__, core_fn)
+    return core_fn
 
 
 def _linearised(forward: Callable[[Any, Tensor], Tensor], tangent: Formula, x: Tensor) -> Tensor:
@@ -138,6 +169,7 @@ def custom_derivative(
     captured: Callable[[Any, Tensor, Tensor], Tensor] | None = None,
     result_shape: Callable[[tuple[int, ...]], tuple[int, ...]] | None = None,
     formula_when_captured: bool = False,
+    eager: tuple[Callable[..., Any], ...] | None = None,
 ) -> Callable[[Any, Tensor], Tensor]:
     """``forward(xp, x) -> y`` with the derivatives ``tangent(xp, x, y, dx) -> dy`` (forward mode)
     and ``cotangent(xp, x, y, gy) -> gx`` (reverse mode). Both formulas are written with
@@ -155,7 +187,14 @@ def custom_derivative(
 
     With ``result_shape`` (the shape of ``y`` for that of ``x``), the forward is an opaque operator
     (:func:`_opaque`). With ``formula_when_captured``, a capture records the forward's own operations,
-    whose autodiff is the map's exact derivative to every order."""
+    whose autodiff is the map's exact derivative to every order.
+
+    With ``eager`` (``_core.eager_rules``: prepare, forward, cotangent, finish), an eager
+    call outside forward mode takes the map's eager form (few vectorised operations) with its own
+    rules, registered by :func:`_lean` (:func:`form` decides, as above); forward mode (an open dual
+    level: ``jvp``, ``jacfwd``, ``hessian``) keeps the Function below, exact to every order through
+    its copy of ``x``."""
+    lean = None if eager is None else _lean(eager[1], eager[2], forward.__name__)
     if result_shape is not None:
         forward = _opaque(forward, result_shape)
 
@@ -199,6 +238,10 @@ def custom_derivative(
 
     def bound(xp: Any, x: Tensor) -> Tensor:
         chosen = form(x)
+        if eager is not None and lean is not None and chosen != "captured" and forward_ad._current_level < 0:
+            prepare, formula, *_, finish = eager
+            u = prepare(torch, x)
+            return finish(torch, x, (lean(u) if chosen == "rule" else formula(torch, u))[0])
         if chosen == "rule":
             return Eager.apply(x)[0]  # type: ignore[no-untyped-call]
         if chosen == "formula":
@@ -212,6 +255,41 @@ def custom_derivative(
 
     bound.__name__ = forward.__name__  # the Backend validates arguments by this name
     return bound
+
+
+def _lean(
+    forward: Callable[..., tuple[Tensor, Tensor]], cotangent: Callable[..., Tensor | None], name: str
+) -> Callable[[Tensor], tuple[Tensor, Tensor]]:
+    """An eager form ``forward(xp, u) -> (y, aux)`` with its rule ``cotangent(xp, u, y, aux, gy, gaux)``
+    (either cotangent None where none is given) as an ``autograd.Function`` that adds no operation of
+    its own: no copy of the input (forward mode needs one, and forward mode takes the componentwise
+    Function), no zero cotangent materialised for an output that is not used. ``aux`` is what the
+    rule reuses from the forward pass (a norm, the chosen candidate's positions): an output, so that a
+    floating one's dependence on ``u`` is recorded (its cotangent, given in a second derivative, is
+    the rule's to take back to ``u``); an integer one has none."""
+
+    class Lean(torch.autograd.Function):
+        generate_vmap_rule = True
+
+        @staticmethod
+        def forward(u: Tensor) -> tuple[Tensor, Tensor]:
+            return forward(torch, u)
+
+        @staticmethod
+        def setup_context(ctx: Any, inputs: tuple[Tensor], output: tuple[Tensor, Tensor]) -> None:
+            ctx.set_materialize_grads(False)
+            ctx.save_for_backward(inputs[0], *output)
+
+        @staticmethod
+        def backward(ctx: Any, gy: Tensor | None, gaux: Tensor | None) -> Tensor | None:
+            return cotangent(torch, *ctx.saved_tensors, gy, gaux)
+
+    Lean = type(f"_{name}_lean", (Lean,), {"__doc__": Lean.__doc__})  # type: ignore[assignment,misc]
+
+    def apply(u: Tensor) -> tuple[Tensor, Tensor]:
+        return Lean.apply(u)  # type: ignore[no-untyped-call]
+
+    return apply
 
 
 def exporting_to_onnx() -> bool:
