@@ -88,6 +88,29 @@ def test_values(op: Op, backend: Backend, dtype: str, case: Case) -> None:
         np.testing.assert_array_equal(from_scalar_last(op, last), out)
 
 
+@only(backend=lambda name: name == "torch", dtype=lambda d: d in FULL_DTYPES)
+def test_values_componentwise(op: Op, backend: Backend, dtype: str) -> None:
+    """Eager torch runs a map's eager form (few vectorised operations, ``_core.EAGER_FORMS``) and the
+    compilers its componentwise form: both forms of every row against the oracle and its properties,
+    the componentwise one here run eagerly (``torch._custom.componentwise``) at every case, where the
+    compiled tests reach it at a few. One test per row and dtype (a test per case cost minutes of
+    pytest's own time); every failing case is named."""
+    from diffquat.torch._custom import componentwise
+
+    failures = []
+    for case in CASES:
+        if not op.applies(case):
+            continue
+        with componentwise():
+            received, out = run(op, backend, dtype, case)
+        try:
+            check_values(op, dtype, received, out)
+            check_properties(op, dtype, out)
+        except AssertionError as error:
+            failures.append(f"{case.name}: {error}")
+    assert not failures, "\n".join(failures)
+
+
 @only(dtype=lambda d: d in HALF_DTYPES)
 def test_values_in_half_precision(op: Op, backend: Backend, dtype: str) -> None:
     """float16 and bfloat16 (computed in float32, returned in their dtype): what test_values checks,
