@@ -26,6 +26,7 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, TypeVar
 
+from ._backend import broadcasts
 from ._core import SHAPES
 from ._types import EulerConvention, MeanMethod, PoseLayout, Rotation6DLayout, SE3Interpolation, Side
 
@@ -299,13 +300,24 @@ class SO3(_Group):
                 f"SO3.compose: expected an SO3 of the same backend, got {type(other).__module__}."
                 f"{type(other).__name__} (an SE3 takes a rotation as SE3.from_rotation_translation(R, t))"
             )
-        (a, b), _ = self._dq._B.validate("SO3.compose", self._matrix, other._matrix)
+        a, b = self._matrix, other._matrix
+        if not (a.dtype == b.dtype and broadcasts([a.shape[:-2], b.shape[:-2]])):
+            # the functions' checks and promotion (their errors, named SO3.compose); same dtypes and
+            # broadcasting batches, the common case, skip them: torch's promote_types is an operation
+            (a, b), _ = self._dq._B.validate("SO3.compose", a, b)
         return self._wrap(self._native.matmul(a, b))
 
     def apply(self, points: Any) -> Any:
         """Rotated points ``R p``, shape ``(..., 3)``; the batch shapes broadcast (``R @ p[..., None]``,
         scipy's and jaxlie's ``apply``)."""
-        (r, p), _ = self._dq._B.validate("SO3.apply", self._matrix, points)
+        r, p = self._matrix, points
+        if not (
+            isinstance(p, self._native.array)
+            and p.dtype == r.dtype
+            and p.shape[-1:] == (3,)
+            and broadcasts([r.shape[:-2], p.shape[:-1]])
+        ):
+            (r, p), _ = self._dq._B.validate("SO3.apply", r, p)  # as in compose
         return self._native.matmul(r, p[..., None])[..., 0]
 
     def __matmul__(self, other: Any) -> Any:
@@ -515,6 +527,7 @@ class Native:
 
     Attributes:
         xp: the array namespace (``numpy``, ``torch``, ``jax.numpy``).
+        array: the backend's array type.
         identity: ``(n, shape, **factory)`` -> identity matrices ``(*shape, n, n)``.
         draw: ``(module, shape, **source)`` -> unit quaternions ``(*shape, 4)`` and standard normal
             translations ``(*shape, 3)`` from the backend's random source.
@@ -525,6 +538,7 @@ class Native:
     """
 
     xp: Any
+    array: type
     identity: Callable[..., Any]
     draw: Callable[..., tuple[Any, Any]]
     device: Callable[[Any], Any]

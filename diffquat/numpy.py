@@ -742,5 +742,7 @@ def _draw(
 
 SO3, SE3 = _objects.bind(
     sys.modules[__name__],
-    _objects.Native(xp=np, identity=_identity, draw=_draw, device=lambda x: "cpu", astype=_B.astype),
+    _objects.Native(
+        xp=np, array=np.ndarray, identity=_identity, draw=_draw, device=lambda x: "cpu", astype=_B.astype
+    ),
 )

@@ -790,7 +790,13 @@ def _device(x: Any) -> Any:
 SO3, SE3 = _objects.bind(
     sys.modules[__name__],
     _objects.Native(
-        xp=jnp, identity=_identity, draw=_draw, device=_device, astype=_B.astype, match_rank=True
+        xp=jnp,
+        array=jax.Array,
+        identity=_identity,
+        draw=_draw,
+        device=_device,
+        astype=_B.astype,
+        match_rank=True,
     ),
 )
 # Pytrees of one leaf, the stored array: through jit, vmap, grad, scan, optax and jax.export (whose

@@ -840,7 +840,9 @@ def _draw(
 
 SO3, SE3 = _objects.bind(
     sys.modules[__name__],
-    _objects.Native(xp=torch, identity=_identity, draw=_draw, device=lambda x: x.device, astype=_B.astype),
+    _objects.Native(
+        xp=torch, array=Tensor, identity=_identity, draw=_draw, device=lambda x: x.device, astype=_B.astype
+    ),
 )
 # torch's pytrees (torch.func's vmap and grad, torch.compile's inputs and outputs, torch.export): one
 # leaf, the stored tensor.
