@@ -292,7 +292,7 @@ class SO3(_Group):
 
     # --- the group ---
 
-    def compose(self: G, other: G) -> G:
+    def compose(self: G, other: Any) -> G:
         """``self @ other``: the product ``R_self R_other`` (apply ``other`` first), batch shapes
         broadcast (scipy's ``self * other``, jaxlie's ``self @ other``)."""
         if not isinstance(other, type(self)):
@@ -454,7 +454,7 @@ class SE3(_Group):
 
     # --- the group ---
 
-    def compose(self: G, other: G) -> G:
+    def compose(self: G, other: Any) -> G:
         """``self @ other``: ``T_self T_other`` (apply ``other`` first), batch shapes broadcast
         (``se3_compose``; scipy's ``self * other``, jaxlie's ``self @ other``)."""
         if not isinstance(other, type(self)):
@@ -549,7 +549,7 @@ class Native:
         if not self.match_rank or a.ndim == b.ndim:
             return a, b
         rank = max(a.ndim, b.ndim)
-        return tuple(self.xp.reshape(x, (1,) * (rank - x.ndim) + tuple(x.shape)) for x in (a, b))  # type: ignore[return-value]
+        return tuple(self.xp.reshape(x, (1,) * (rank - x.ndim) + tuple(x.shape)) for x in (a, b))
 
     def matmul(self, a: Any, b: Any) -> Any:
         return self.xp.matmul(*self._ranked(a, b))
@@ -602,4 +602,4 @@ def bind(module: Any, native: Native) -> tuple[type[SO3], type[SE3]]:
         )
         cls.__qualname__ = base.__name__
         classes.append(cls)
-    return classes[0], classes[1]  # type: ignore[return-value]
+    return classes[0], classes[1]

@@ -230,6 +230,27 @@ def test_methods_dispatch_the_functions_operations() -> None:
         with torch.no_grad():
             for name, method, function in _pairs(dq, x)[:3]:
                 assert ops(method) == ops(function), name
+    # forward + backward: the same operations again (autograd records the same graph)
+    x = {
+        k: v.requires_grad_()
+        for k, v in _backend_inputs(BACKENDS["torch"], uniform_quaternions(8, seed=2)).items()
+    }
+
+    def backward(fn: Callable[[], Any]) -> Callable[[], Any]:
+        def run() -> None:
+            for v in x.values():
+                v.grad = None
+            out = fn()
+            for o in out if isinstance(out, tuple) else (out,):
+                (o.matrix if isinstance(o, dq.SO3 | dq.SE3) else o).sum().backward(retain_graph=True)
+
+        return run
+
+    checked = 0
+    for name, method, function in _pairs(dq, x):
+        assert ops(backward(method)) == ops(backward(function)), name
+        checked += 1
+    assert checked == len(_pairs(dq, x))
 
 
 def test_grammar(backend: Backend) -> None:
