@@ -108,10 +108,12 @@ class _Group:
 
     @property
     def ndim(self) -> int:
+        """The number of batch axes."""
         return len(self.shape)
 
     @property
     def dtype(self) -> Any:
+        """The stored array's dtype."""
         return self._matrix.dtype
 
     @property
