@@ -296,7 +296,8 @@ class SO3(_Group):
 
     def compose(self: G, other: Any) -> G:
         """``self @ other``: the product ``R_self R_other`` (apply ``other`` first), batch shapes
-        broadcast (scipy's ``self * other``, jaxlie's ``self @ other``)."""
+        broadcast (scipy's ``self * other``, jaxlie's ``self @ other``); float16 and bfloat16 are
+        multiplied in float32."""
         if not isinstance(other, type(self)):
             raise TypeError(
                 f"SO3.compose: expected an SO3 of the same backend, got {type(other).__module__}."
@@ -307,7 +308,7 @@ class SO3(_Group):
             # the functions' checks and promotion (their errors, named SO3.compose); same dtypes and
             # broadcasting batches, the common case, skip them: torch's promote_types is an operation
             (a, b), _ = self._dq._B.validate("SO3.compose", a, b)
-        return self._wrap(self._native.matmul(a, b))
+        return self._wrap(self._product(a, b))
 
     def apply(self, points: Any) -> Any:
         """Rotated points ``R p``, shape ``(..., 3)``; the batch shapes broadcast (``R @ p[..., None]``,
@@ -320,7 +321,15 @@ class SO3(_Group):
             and broadcasts([r.shape[:-2], p.shape[:-1]])
         ):
             (r, p), _ = self._dq._B.validate("SO3.apply", r, p)  # as in compose
-        return self._native.matmul(r, p[..., None])[..., 0]
+        return self._product(r, p[..., None])[..., 0]
+
+    def _product(self, a: Any, b: Any) -> Any:
+        # float16 and bfloat16 multiplied in float32, as the functions compute them, and rounded once
+        compute = self._dq._B.compute_dtype(a.dtype)
+        if compute == a.dtype:
+            return self._native.matmul(a, b)
+        astype = self._native.astype
+        return astype(self._native.matmul(astype(a, compute), astype(b, compute)), a.dtype)
 
     def __matmul__(self, other: Any) -> Any:
         """``a @ b`` composes two ``SO3``; ``a @ points`` rotates points ``(..., 3)``."""

@@ -410,6 +410,34 @@ def test_mixed_dtypes_promote_as_the_functions_do(backend: Backend) -> None:
     assert str((R @ p).dtype).endswith("float64") and str((R @ S).dtype).endswith("float64")
 
 
+@pytest.mark.parametrize("half", ["float16", "bfloat16"])
+def test_half_precision_products_are_computed_in_float32(backend: Backend, half: str) -> None:
+    """``SO3 @ SO3`` and ``SO3 @ p`` in float16 and bfloat16: the float32 product rounded once to the
+    dtype, as the functions compute half precision (the SE3 methods are the functions themselves)."""
+    dq = backend.module
+    q = uniform_quaternions((3, 4), seed=5)
+    r1 = backend.array(_oracle_matrix(q), half)
+    r2 = backend.array(_oracle_matrix(uniform_quaternions((3, 4), seed=6)), half)
+    p = backend.array(np.random.default_rng(0).normal(size=(3, 4, 3)), half)
+    wide = [backend.to_numpy(x).astype(np.float32) for x in (r1, r2, p)]
+    composed = (dq.SO3(r1) @ dq.SO3(r2)).matrix
+    moved = dq.SO3(r1) @ p
+    assert str(composed.dtype).endswith(half) and str(moved.dtype).endswith(half)
+    np.testing.assert_array_equal(
+        backend.to_numpy(composed), backend.to_numpy(backend.array(wide[0] @ wide[1], half))
+    )
+    np.testing.assert_array_equal(
+        backend.to_numpy(moved),
+        backend.to_numpy(backend.array((wide[0] @ wide[2][..., None])[..., 0], half)),
+    )
+
+
+def _oracle_matrix(q: np.ndarray) -> np.ndarray:
+    from cases import oracle_quaternion_to_matrix
+
+    return oracle_quaternion_to_matrix(q)
+
+
 def test_torch_paths() -> None:
     """Autograd, torch.func (vmap, grad), torch.compile(fullgraph=True) without a graph break,
     ``.to``, ``.detach``, and an optimiser step on the stored tensor."""
