@@ -89,6 +89,14 @@ class _Group:
             )
         return other
 
+    def _product(self, a: Any, b: Any) -> Any:
+        # float16 and bfloat16 multiplied in float32, as the functions compute them, and rounded once
+        compute = self._dq._B.compute_dtype(a.dtype)
+        if compute == a.dtype:
+            return self._native.matmul(a, b)
+        astype = self._native.astype
+        return astype(self._native.matmul(astype(a, compute), astype(b, compute)), a.dtype)
+
     # --- the stored array ---
 
     @property
@@ -322,14 +330,6 @@ class SO3(_Group):
         ):
             (r, p), _ = self._dq._B.validate("SO3.apply", r, p)  # as in compose
         return self._product(r, p[..., None])[..., 0]
-
-    def _product(self, a: Any, b: Any) -> Any:
-        # float16 and bfloat16 multiplied in float32, as the functions compute them, and rounded once
-        compute = self._dq._B.compute_dtype(a.dtype)
-        if compute == a.dtype:
-            return self._native.matmul(a, b)
-        astype = self._native.astype
-        return astype(self._native.matmul(astype(a, compute), astype(b, compute)), a.dtype)
 
     def __matmul__(self, other: Any) -> Any:
         """``a @ b`` composes two ``SO3``; ``a @ points`` rotates points ``(..., 3)``."""
