@@ -73,6 +73,11 @@ class _Group:
             f"{type(self).__name__} is immutable: make a new one instead of setting {name!r}"
         )
 
+    def __reduce__(self) -> tuple[Any, tuple[Any]]:
+        # pickle and copy.deepcopy rebuild through _wrap (the default would set the slot, which
+        # __setattr__ refuses)
+        return type(self)._wrap, (self._matrix,)
+
     @classmethod
     def _call(cls, name: str, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Any:
         """``fn(*args, **kwargs)``, with the name of the method in front of an argument error."""

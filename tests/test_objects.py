@@ -314,6 +314,13 @@ def test_grammar(backend: Backend) -> None:
     with pytest.raises(AttributeError, match="SO3 is immutable"):
         R.matrix = R.matrix  # type: ignore[misc]
     assert R == R and R[...] != R
+    # pickled and copied through their stored array
+    import copy
+    import pickle
+
+    for obj in (R, T):
+        for again in (pickle.loads(pickle.dumps(obj)), copy.deepcopy(obj), copy.copy(obj)):
+            assert type(again) is type(obj) and again.allclose(obj, rtol=0, atol=0)
     # reproducible draws from the backend's own source; distinct draws differ
     if backend.name == "numpy":
         assert dq.SO3.random(2, rng=1).allclose(dq.SO3.random(2, rng=1), rtol=0, atol=0)
