@@ -867,8 +867,18 @@ def rotation_between_vectors(
     # underflows (a constant of differentiation: it cancels)
     a, b = _by_largest(xp, a), _by_largest(xp, b)
     c = _cross(xp, a, b)
+    # The axis must be orthogonal to a to the last bit: the rounding of a x b (eps |a| |b| in any
+    # direction; an FMA leaves it along a even for exactly antiparallel input) would otherwise move a
+    # by eps / sin(angle) near antiparallel vectors. a x b is orthogonal to a, so removing its
+    # component along a changes neither the value nor the derivative; |a|^2 is 0 or in [1, 3].
+    na = _dot(xp, a, a)
+    c = c - (_dot(xp, c, a) / xp.where(na > 0, na, 1.0)) * a
     d = xp.sum(a * b, axis=-1)
     u = xp.sum(c * c, axis=-1)
+    # Antiparallel to within 4 ulp (tan(gap)^2 <= (4 eps)^2: the cross product is then rounding, and
+    # its direction the arithmetic's choice): the documented half-turn, which maps a's direction onto
+    # b's to within the gap, the same on every backend.
+    antiparallel = (d < 0) & (u <= (16.0 * xp.finfo(d.dtype).eps ** 2) * (d * d))
     # rotation vector = (atan2(s, d) / s) c with s = |c| (no sqrt at 0: double where)
     series = (d > 0) & (u < _ATAN_SERIES_BELOW * (d * d))
     d_s = xp.where(series, d, 1.0)
@@ -876,11 +886,10 @@ def rotation_between_vectors(
     f_series = x * _ATAN_SERIES[-1] + _ATAN_SERIES[-2]
     for k in _ATAN_SERIES[-3::-1]:
         f_series = f_series * x + k
-    closed = ~series & (u > 0)
+    closed = ~series & ~antiparallel & (u > 0)
     s = xp.sqrt(xp.where(closed, u, 1.0))
     f_closed = xp.atan2(s, xp.where(closed, d, 0.0)) / s
     f = xp.where(series, f_series / d_s, xp.where(closed, f_closed, 0.0))
-    antiparallel = (u == 0) & (d < 0)
     rotvec = xp.where(
         antiparallel[..., None],
         math.pi * _perpendicular(xp, xp.where(antiparallel[..., None], a, 1.0)),
