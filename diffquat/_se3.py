@@ -917,7 +917,9 @@ def frame_from_three_points(xp: Any, x1: Any, x2: Any, x3: Any) -> Any:
         ``e2`` of the coordinate axis least aligned with ``e1``.
     """
     p1, p2, p3 = match_rank(xp, x1, x2, x3)
-    rotation = rotation_6d_to_matrix(xp, xp.concat([p3 - p2, p1 - p2], axis=-1))
-    batch = tuple(rotation.shape[:-2])
+    along, toward = p3 - p2, p1 - p2
+    batch = tuple(xp.broadcast_shapes(along.shape[:-1], toward.shape[:-1]))  # all three's
+    d6 = xp.concat([xp.broadcast_to(along, (*batch, 3)), xp.broadcast_to(toward, (*batch, 3))], axis=-1)
+    rotation = rotation_6d_to_matrix(xp, d6)
     origin = xp.broadcast_to(p2, (*batch, 3))
     return _with_bottom(xp, xp.concat([rotation, _column(origin)], axis=-1))
