@@ -912,9 +912,10 @@ def frame_from_three_points(xp: Any, x1: Any, x2: Any, x3: Any) -> Any:
         Poses ``[[R, x2], [0, 1]]``, shape ``(..., 4, 4)``, with ``R``'s columns
         ``e1 = (x3 - x2) / |x3 - x2|``, ``e2`` the normalised part of ``x1 - x2`` orthogonal to
         ``e1``, and ``e3 = e1 x e2`` (Gram-Schmidt: ``rotation_6d_to_matrix`` of ``(x3 - x2, x1 - x2)``).
+        ``R`` is a rotation to a few ulps for all finite points, at every scale in the dtype's range.
         Degenerate points never raise and have finite gradients, as in ``rotation_6d_to_matrix``:
-        ``x3 = x2`` gives ``e1 = (1, 0, 0)``, and ``x1`` on the line of the other two gives the
-        ``e2`` of the coordinate axis least aligned with ``e1``.
+        ``x3 = x2`` gives ``e1 = (1, 0, 0)``, and ``x1`` on the line of the other two (to within 8
+        ulps of ``|x1 - x2|``) gives the ``e2`` of the coordinate axis least aligned with ``e1``.
     """
     p1, p2, p3 = match_rank(xp, x1, x2, x3)
     along, toward = p3 - p2, p1 - p2

@@ -355,7 +355,7 @@ def oracle_rotation_6d_to_matrix(d6: np.ndarray) -> np.ndarray:
             a1 = np.array([1.0, 0.0, 0.0])
         b1 = a1 / np.linalg.norm(a1)
         resid = a2 - (b1 @ a2) * b1
-        if resid @ resid <= np.finfo(np.float64).eps ** 2 * (a2 @ a2) + np.finfo(np.float64).tiny:
+        if resid @ resid <= (8 * np.finfo(np.float64).eps) ** 2 * (a2 @ a2) + np.finfo(np.float64).tiny:
             a2 = np.eye(3)[int(np.argmin(np.abs(b1)))]  # argmin: the first on ties
         qm, rm = np.linalg.qr(np.stack([a1, a2], axis=-1))
         qm = qm * np.sign(np.diag(rm))
