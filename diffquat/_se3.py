@@ -722,8 +722,9 @@ def se3_mean(xp: Any, matrices: Any, weights: Any = None, *, rotation_mean: Any,
 def _centred(xp: Any, source: Any, target: Any, weights: Any) -> tuple[Any, ...]:
     """Broadcast ``source``, ``target`` ``(..., N, 3)`` and weights ``(..., N)``; their weighted
     centroids ``(..., 3)``, the weighted cross-covariance ``sum_i w_i (t_i - ct) (s_i - cs)^T`` and the
-    source's weighted spread ``sum_i w_i |s_i - cs|^2`` ``(...)``. Centred before the products: the
-    covariance of points far from the origin would otherwise cancel."""
+    source's weighted spread ``sum_i w_i |s_i - cs|^2`` ``(...)``, both of the centred points divided
+    by the largest coordinate of their set, and the ratio of those divisors (target's over source's).
+    Centred before the products: the covariance of points far from the origin would otherwise cancel."""
     n = source.shape[-2]
     shapes = [source.shape[:-2], target.shape[:-2]] + ([] if weights is None else [weights.shape[:-1]])
     batch = tuple(xp.broadcast_shapes(*shapes))
@@ -740,9 +741,20 @@ def _centred(xp: Any, source: Any, target: Any, weights: Any) -> tuple[Any, ...]
         return first + shift, d - shift[..., None, :]
 
     (cs, s), (ct, t) = centre(source), centre(target)
+    # Each centred set divided by its largest coordinate: the rotation is blind to both scales, and
+    # no product over- or underflows (points at 1e30 or 1e-30 in float32 once gave non-finite or
+    # identity rotations). Constants of differentiation: the similarity's scale multiplies their
+    # ratio back.
+    ks, kt = (cancelling_factor(xp, xp.where(k > 0, k, 1.0)) for k in (_largest(xp, s), _largest(xp, t)))
+    s, t = s / ks[..., None, None], t / kt[..., None, None]
     covariance = xp.matmul(xp.swapaxes(w[..., None] * t, -1, -2), s)
     spread = xp.sum(w * xp.sum(s * s, axis=-1), axis=-1)
-    return cs, ct, covariance, spread
+    return cs, ct, covariance, spread, kt / ks
+
+
+def _largest(xp: Any, x: Any) -> Any:
+    """The largest absolute coordinate of points ``(..., N, 3)``, shape ``(...)``."""
+    return xp.amax(xp.abs(x), axis=(-2, -1))
 
 
 @op(source=(-1, 3), target=(-1, 3), weights=(-1,))
@@ -761,10 +773,12 @@ def fit_rigid_transform(xp: Any, source: Any, target: Any, weights: Any = None, 
         centroids. Degenerate sets have ``fit_rotation``'s rotation: coplanar points still determine
         it; collinear points and points all equal leave it undetermined, and it is then
         ``special_procrustes``' choice for the rank-1 or zero covariance (the identity for zero), with
-        a finite gradient; weights summing to zero give the identity. Gradients are
-        ``special_procrustes``' (exact wherever the rotation is unique).
+        a finite gradient; weights summing to zero give the identity. Scale-free: the centred
+        points are divided by their largest coordinate before any product, so points anywhere in
+        the dtype's range (1e-30 to 1e30 in float32) give the rotation of the same points at unit
+        scale. Gradients are ``special_procrustes``' (exact wherever the rotation is unique).
     """
-    cs, ct, covariance, _ = _centred(xp, source, target, weights)
+    cs, ct, covariance, _, _ = _centred(xp, source, target, weights)
     rotation = procrustes(xp, covariance)
     translation = ct - xp.matmul(rotation, _column(cs))[..., 0]
     return _with_bottom(xp, xp.concat([rotation, _column(translation)], axis=-1))
@@ -788,16 +802,16 @@ def fit_similarity_transform(
         ``s = tr(R^T C) / sum_i w_i |s_i - cs|^2`` (``C`` the weighted cross-covariance of the centred
         points; negative only if the target is mirrored beyond what a rotation can undo) and
         ``t = ct - s R cs``. Where the source has no spread (all points equal, or no weight) the scale
-        is 1.
+        is 1. Scale-free as ``fit_rigid_transform``: the rotation and ``s`` are exact for points
+        anywhere in the dtype's range (``s`` itself must be representable).
     """
     # The core returns the pose with the scale in its bottom-right entry; each backend's wrapper
     # splits it off and restores the exact bottom row (so that the non-finite rule covers both).
-    cs, ct, covariance, spread = _centred(xp, source, target, weights)
+    cs, ct, covariance, spread, ratio = _centred(xp, source, target, weights)
     rotation = procrustes(xp, covariance)
     spread_ok = spread > 0
-    scale = xp.where(
-        spread_ok, xp.sum(rotation * covariance, axis=(-1, -2)) / xp.where(spread_ok, spread, 1.0), 1.0
-    )
+    fit = xp.sum(rotation * covariance, axis=(-1, -2)) / xp.where(spread_ok, spread, 1.0)
+    scale = xp.where(spread_ok, fit * ratio, 1.0)
     translation = ct - scale[..., None] * xp.matmul(rotation, _column(cs))[..., 0]
     top = xp.concat([rotation, _column(translation)], axis=-1)
     zero = xp.zeros_like(top[..., :1, :3])
