@@ -746,15 +746,15 @@ def _centred(xp: Any, source: Any, target: Any, weights: Any) -> tuple[Any, ...]
     # identity rotations). Constants of differentiation: the similarity's scale multiplies their
     # ratio back.
     ks, kt = (cancelling_factor(xp, xp.where(k > 0, k, 1.0)) for k in (_largest(xp, s), _largest(xp, t)))
-    s, t = s / ks[..., None, None], t / kt[..., None, None]
+    s, t = s / ks, t / kt
     covariance = xp.matmul(xp.swapaxes(w[..., None] * t, -1, -2), s)
     spread = xp.sum(w * xp.sum(s * s, axis=-1), axis=-1)
-    return cs, ct, covariance, spread, kt / ks
+    return cs, ct, covariance, spread, (kt / ks)[..., 0, 0]
 
 
 def _largest(xp: Any, x: Any) -> Any:
-    """The largest absolute coordinate of points ``(..., N, 3)``, shape ``(...)``."""
-    return xp.amax(xp.abs(x), axis=(-2, -1))
+    """The largest absolute coordinate of points ``(..., N, 3)``, shape ``(..., 1, 1)``."""
+    return xp.amax(xp.abs(x), axis=(-2, -1), keepdims=True)
 
 
 @op(source=(-1, 3), target=(-1, 3), weights=(-1,))
