@@ -15,10 +15,10 @@ from collections.abc import Callable
 from typing import Any
 
 from ._core import (
-    cancelling_factor,
     canonical,
     join_quaternion,
     op,
+    range_divisor,
     split_quaternion,
     stack_matrix,
     standardize_quaternion,
@@ -82,12 +82,10 @@ def rotation_6d_to_matrix(xp: Any, d6: Any, *, layout: str = "columns") -> Any:
     identity.
     """
     axis = _layout_axis("rotation_6d_to_matrix", layout)
-    # a1 and a2 each divided by its largest component: the map is blind to their positive scales, and
-    # no square over- or underflows, from the smallest subnormal to the largest finite number (a
-    # constant of differentiation: it cancels). |a1|^2 and |a2|^2 are then 0 or in [1, 3].
+    # a1 and a2 each brought to a largest component of 16 (range_divisor): the map is blind to their
+    # positive scales, and no square over- or underflows, up to the largest finite number.
     pair = xp.reshape(d6, (*d6.shape[:-1], 2, 3))
-    largest = xp.amax(xp.abs(pair), axis=-1, keepdims=True)
-    pair = pair / cancelling_factor(xp, xp.where(largest > 0, largest, 1.0))
+    pair = pair / range_divisor(xp, xp.amax(xp.abs(pair), axis=-1, keepdims=True))
     a1, a2 = pair[..., 0, :], pair[..., 1, :]
     info = xp.finfo(d6.dtype)
     n1 = xp.sum(a1 * a1, axis=-1)

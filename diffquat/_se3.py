@@ -44,6 +44,7 @@ from ._core import (
     nonfinite_by_arithmetic,
     op,
     quaternion_to_matrix,
+    range_divisor,
     small_matmul,
     stack_matrix,
     unit_quaternion_to_matrix,
@@ -745,7 +746,7 @@ def _centred(xp: Any, source: Any, target: Any, weights: Any) -> tuple[Any, ...]
     # no product over- or underflows (points at 1e30 or 1e-30 in float32 once gave non-finite or
     # identity rotations). Constants of differentiation: the similarity's scale multiplies their
     # ratio back.
-    ks, kt = (cancelling_factor(xp, xp.where(k > 0, k, 1.0)) for k in (_largest(xp, s), _largest(xp, t)))
+    ks, kt = range_divisor(xp, _largest(xp, s)), range_divisor(xp, _largest(xp, t))
     s, t = s / ks, t / kt
     covariance = xp.matmul(xp.swapaxes(w[..., None] * t, -1, -2), s)
     spread = xp.sum(w * xp.sum(s * s, axis=-1), axis=-1)
@@ -852,8 +853,7 @@ def _perpendicular(xp: Any, a: Any) -> Any:
 
 
 def _by_largest(xp: Any, v: Any) -> Any:
-    largest = xp.amax(xp.abs(v), axis=-1, keepdims=True)
-    return v / cancelling_factor(xp, xp.where(largest > 0, largest, 1.0))
+    return v / range_divisor(xp, xp.amax(xp.abs(v), axis=-1, keepdims=True))
 
 
 @op(a=(3,), b=(3,))
@@ -884,7 +884,7 @@ def rotation_between_vectors(
     # The axis must be orthogonal to a to the last bit: the rounding of a x b (eps |a| |b| in any
     # direction; an FMA leaves it along a even for exactly antiparallel input) would otherwise move a
     # by eps / sin(angle) near antiparallel vectors. a x b is orthogonal to a, so removing its
-    # component along a changes neither the value nor the derivative; |a|^2 is 0 or in [1, 3].
+    # component along a changes neither the value nor the derivative; |a|^2 is 0 or in [256, 768].
     na = _dot(xp, a, a)
     c = c - (_dot(xp, c, a) / xp.where(na > 0, na, 1.0)) * a
     d = xp.sum(a * b, axis=-1)
