@@ -14,12 +14,14 @@ import numpy as np
 from cases import (
     CASES,
     DTYPES,
+    HOST_DTYPES,
     OPS,
     ROUND_TRIP_TOL,
     VALUE_TOL,
     Case,
     Op,
     hamilton,
+    host_cast,
     only,
     oracle_normalize,
     oracle_quaternion_to_matrix,
@@ -410,4 +412,19 @@ def test_arguments_broadcast_pairwise(op: Op, backend: Backend) -> None:
         expected = backend.to_numpy(op(backend.module, *(backend.array(x, "float64") for x in explicit)))
         if out.shape != expected.shape or not np.allclose(out, expected, rtol=1e-13, atol=1e-13):
             failures.append(f"arguments {i} and {j}: shape {out.shape}, expected {expected.shape}")
+    assert not failures, "\n".join(failures)
+
+
+@only(op=lambda op: bool(op.degenerate), dtype=lambda d: d in FULL_DTYPES)
+def test_degenerate_inputs(op: Op, backend: Backend, dtype: str) -> None:
+    """Each of the op's degenerate configurations (``Op.degenerate``: parallel and antiparallel
+    vectors, collinear points, extreme scales, ...) within its bound in ulps of a high-precision
+    reference at the inputs as rounded to ``dtype``; one eager call each."""
+    failures = []
+    for config in op.degenerate:
+        received = [host_cast(x, HOST_DTYPES[dtype]).astype(np.float64) for x in config.make(dtype)]
+        out = backend.to_numpy(op(backend.module, *(backend.array(x, dtype) for x in received)))
+        error = config.error(received, out, dtype) if np.all(np.isfinite(out)) else np.inf
+        if not error <= config.ulps:
+            failures.append(f"{config.name}: {error:.3g} ulp > {config.ulps}")
     assert not failures, "\n".join(failures)
