@@ -868,13 +868,16 @@ def rotation_between_vectors(
 
     Returns:
         Rotation matrices ``R`` with ``R a / |a| = b / |b|``, shape ``(..., 3, 3)``: the rotation by
-        ``atan2(|a x b|, a . b)`` about ``a x b``, through the quaternion. No ``1 + a . b``: exact to
-        a few ulps up to the antiparallel limit (1e-8 from it in float32 and float64). Exactly
-        antiparallel vectors have no unique shortest arc: the half-turn about the unit vector
-        orthogonal to ``a`` in the plane of ``a`` and the coordinate axis least aligned with ``a``
-        (the first such axis on ties). A zero ``a`` or ``b`` gives the identity. Gradients are finite
-        everywhere but at exactly antiparallel vectors (where the rotation jumps); near them they
-        grow like the axis' conditioning, ``1 / sin(angle)``.
+        ``atan2(|a x b|, a . b)`` about ``a x b`` (made orthogonal to ``a`` to the last bit), through
+        the quaternion. No ``1 + a . b``: ``R`` maps ``a``'s direction onto ``b``'s to a few ulps
+        (16 at most) and is a rotation to a few ulps, at every angle up to exactly pi and for
+        vectors of any length in the dtype's range. Vectors antiparallel to within 4 ulps
+        (``|a x b| <= 4 eps |a . b|``) have no shortest arc that rounding can tell apart: the
+        half-turn about the unit vector orthogonal to ``a`` in the plane of ``a`` and the coordinate
+        axis least aligned with ``a`` (the first such axis on ties), on every backend. A zero ``a``
+        or ``b`` gives the identity. Gradients are finite everywhere but at (those 4 ulps of)
+        antiparallel vectors, where the rotation jumps; near them they grow like the axis'
+        conditioning, ``1 / sin(angle)``.
     """
     a, b = match_rank(xp, a, b)
     # each divided by its largest component: the result is scale invariant, and no product over- or
