@@ -514,6 +514,44 @@ def fit_degenerate(name: str) -> tuple[Degenerate, ...]:
     )
 
 
+def against_the_oracle(op_id: str) -> Callable[[list[np.ndarray], np.ndarray, str], float]:
+    """The row's own float64 oracle at the inputs as received, measured as the table measures it
+    (``table_error``: relative, up to the sign, ...), in ulps of the dtype."""
+
+    def error(received: list[np.ndarray], out: np.ndarray, dtype: str) -> float:
+        op = OPS_BY_NAME[op_id]
+        return table_error(op, received, out, op.oracle(*received)) / float(np.finfo(dtype).eps)
+
+    return error
+
+
+def _without_translation(x: np.ndarray) -> np.ndarray:
+    """A pose ``(..., 4, 4)`` with its translation zeroed, or a twist ``(..., 6)`` with its rho."""
+    x = np.array(x)
+    if x.shape[-2:] == (4, 4):
+        x[..., :3, 3] = 0.0
+    else:
+        x[..., :3] = 0.0
+    return x
+
+
+def zero_translation(
+    op_id: str, inputs: Callable[[np.ndarray], tuple[np.ndarray, ...]], ulps: float
+) -> tuple[Degenerate, ...]:
+    """An SE(3) row at pure rotations (zero translation, zero rho) of the identity, the 26 exact
+    half-turns and rotations 1e-1 ... 1e-8 short of a half-turn, where the rotation part degenerates,
+    against the row's float64 oracle."""
+    quaternions = np.concatenate([[[1.0, 0.0, 0.0, 0.0]], _half_turns(), _near_half_turns()[::7]])
+    return (
+        Degenerate(
+            "zero_translation",
+            lambda dtype: tuple(_without_translation(x) for x in inputs(quaternions)),
+            against_the_oracle(op_id),
+            ulps,
+        ),
+    )
+
+
 _EXPECTED: dict[tuple[Any, ...], np.ndarray] = {}
 
 
@@ -1472,10 +1510,18 @@ def oracle_se3_interpolate(t1: np.ndarray, t2: np.ndarray, t: np.ndarray) -> np.
     return t1 @ oracle_se3_exp(t[..., None] * oracle_se3_log(np.linalg.inv(t1) @ t2))
 
 
+# The SE(3) rows at zero translation: the table's tolerance for them (VALUE_TOL: 2e-6 in float32, 17
+# ulp; 1e-12 in float64, where the float64 oracles (scipy's expm, a solve) round too), in ulps.
+ZERO_TRANSLATION_ULPS = 16.0
+
+
 def _se3_ops() -> list[Op]:
     # Errors relative to each element's largest entry: translations (~2, up to ~10 applied to points)
     # sit beside rotation entries <= 1, and a rounding error is an ulp of the largest.
     def poses(name: str, inputs: Callable[..., Any], oracle: Callable[..., np.ndarray], **kw: Any) -> Op:
+        if inputs in (twist, pose):  # one pose or twist: its pure rotations are degenerate
+            label = kw.get("label", name)
+            kw = {"degenerate": zero_translation(label, inputs, ZERO_TRANSLATION_ULPS), **kw}
         return Op(
             name, inputs, oracle, quaternion_args=(), output="other", scalar_first=False, relative=True, **kw
         )

@@ -418,13 +418,20 @@ def test_arguments_broadcast_pairwise(op: Op, backend: Backend) -> None:
 @only(op=lambda op: bool(op.degenerate), dtype=lambda d: d in FULL_DTYPES)
 def test_degenerate_inputs(op: Op, backend: Backend, dtype: str) -> None:
     """Each of the op's degenerate configurations (``Op.degenerate``: parallel and antiparallel
-    vectors, collinear points, extreme scales, ...) within its bound in ulps of a high-precision
-    reference at the inputs as rounded to ``dtype``; one eager call each."""
-    failures = []
-    for config in op.degenerate:
-        received = [host_cast(x, HOST_DTYPES[dtype]).astype(np.float64) for x in config.make(dtype)]
-        out = backend.to_numpy(op(backend.module, *(backend.array(x, dtype) for x in received)))
-        error = config.error(received, out, dtype) if np.all(np.isfinite(out)) else np.inf
+    vectors, collinear points, extreme scales, zero translation, ...) within its bound in ulps of a
+    high-precision reference at the inputs as rounded to ``dtype``. One eager call for all of them
+    (each configuration is a batch of rows along one axis; rows are independent)."""
+    received = [
+        [host_cast(x, HOST_DTYPES[dtype]).astype(np.float64) for x in config.make(dtype)]
+        for config in op.degenerate
+    ]
+    together = [np.concatenate(xs) for xs in zip(*received, strict=True)]
+    out = backend.to_numpy(op(backend.module, *(backend.array(x, dtype) for x in together)))
+    failures, start = [], 0
+    for config, xs in zip(op.degenerate, received, strict=True):
+        rows = slice(start, start + len(xs[0]))
+        start = rows.stop
+        error = config.error(xs, out[rows], dtype) if np.all(np.isfinite(out[rows])) else np.inf
         if not error <= config.ulps:
             failures.append(f"{config.name}: {error:.3g} ulp > {config.ulps}")
     assert not failures, "\n".join(failures)
