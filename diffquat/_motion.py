@@ -246,10 +246,14 @@ def _segment(xp: Any, u: Any, segments: int) -> tuple[Any, Any]:
     parameters ``u`` clamped to [0, segments]: ``u = i + s``, with the end ``u = segments`` in the last
     segment at ``s = 1``. The index is a selection (a zero derivative), the fraction carries ``u``'s.
 
+    The clamp is two selections, not a clip, so that at the ends ``u = 0`` and ``u = segments`` the
+    derivative in ``u`` is the one-sided one from inside on every backend (jax's clip halves it there:
+    a tie of min or max splits the derivative; torch's clamp passes it whole); outside, it is 0.
+
     A NaN parameter takes segment 0 (an index must be in range on every backend: numpy and torch
     raise on one that is not) and keeps its NaN in the fraction, so the values at it are NaN."""
-    uc = xp.clip(u, 0.0, float(segments))
-    # uc >= 0 is False only where uc is NaN (the clip has put every number in range)
+    uc = xp.where(u < 0.0, 0.0, xp.where(u > float(segments), float(segments), u))
+    # uc >= 0 is False only where uc is NaN (the selections have put every number in range)
     i = xp.clip(xp.floor(xp.where(uc >= 0.0, uc, 0.0)), 0.0, float(segments - 1))
     return i, uc - i
 

@@ -554,3 +554,56 @@ def test_jax_jit_and_reverse_mode() -> None:
         e[k] = h
         fd = (spline(np, tangents + e.reshape(6, 3)) - spline(np, tangents - e.reshape(6, 3))) / (2 * h)
         np.testing.assert_allclose(jacobian[:, k // 3, k % 3], fd, atol=1e-8)
+
+
+# Each parametrised curve of the module, its parameter's range [0, end], and its inputs.
+END_CURVES: dict[str, tuple[Callable[..., Any], Callable[[], np.ndarray], float]] = {
+    "squad": (lambda xp, c, u: (m.quaternion_squad(xp, c, u),), lambda: _knots(5, 28), 4.0),
+    "so3_bspline": (m.so3_bspline, lambda: _random_control(6, 29), 3.0),
+    "se3_bspline": (m.se3_bspline, lambda: _random_poses(6, 30), 3.0),
+    "se3_bspline_split": (
+        lambda xp, c, u: m.se3_bspline(xp, c, u, mode="split"),
+        lambda: _random_poses(6, 31),
+        3.0,
+    ),
+}
+
+
+@pytest.mark.parametrize("curve", list(END_CURVES))
+def test_parameter_derivative_at_the_ends_is_the_one_sided_one(curve: str) -> None:
+    """At the ends of the parameter's range, u = 0 and u = end, the derivative of every output in u is
+    the one-sided one from inside, on torch (reverse mode) and on jax (forward and reverse): against
+    numpy's inward second-order difference (h = 1e-5: truncation ~h^2 |f'''| <= 1e-9, rounding ~1e-16
+    / h), within 1e-8 (their sizes are ~1); beyond the ends (clamped) it is 0. Before, jax's clip gave
+    half the one-sided derivative at both ends (a tie of min or max splits it), torch all of it."""
+    fn, make, end = END_CURVES[curve]
+    control = make()
+    u = np.array([-0.5, 0.0, end, end + 0.5])
+
+    def flat(xp: Any, t: Any) -> Any:
+        parts = fn(xp, xp.asarray(control), t)
+        return xp.concatenate([xp.reshape(p, (t.shape[0], -1)) for p in parts], axis=-1)  # (len(t), outputs)
+
+    h = 1e-5
+
+    def at(t: float) -> np.ndarray:
+        return np.asarray(flat(np, np.array([t])))[0]
+
+    reference = np.stack(
+        [
+            np.zeros_like(at(0.0)),
+            (-3 * at(0.0) + 4 * at(h) - at(2 * h)) / (2 * h),
+            (3 * at(end) - 4 * at(end - h) + at(end - 2 * h)) / (2 * h),
+            np.zeros_like(at(0.0)),
+        ]
+    )
+    ut = torch.tensor(u, requires_grad=True)
+    out = flat(torch, ut)
+    rows = [torch.autograd.grad(out[:, k].sum(), ut, retain_graph=True)[0] for k in range(out.shape[1])]
+    torch_derivative = torch.stack(rows, -1).numpy()
+    uj = jnp.asarray(u)
+    forward = jax.jit(lambda t: jax.jvp(lambda s: flat(JXP, s), (t,), (jnp.ones_like(t),))[1])(uj)
+    backward = jax.jit(jax.jacrev(lambda t: flat(JXP, t)))(uj)
+    backward = jnp.stack([backward[j, :, j] for j in range(4)])
+    for name, got in (("torch", torch_derivative), ("jax jvp", forward), ("jax vjp", backward)):
+        np.testing.assert_allclose(np.asarray(got), reference, rtol=0, atol=1e-8, err_msg=name)
