@@ -31,6 +31,7 @@ finite gradient, as ``so3_log`` does.
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable
 from fractions import Fraction
 from typing import Any
@@ -400,7 +401,13 @@ def _basis(xp: Any, s: Any, order: int) -> list[tuple[Any, Any, Any]]:
 
 
 def _check_spline(fname: str, shape: tuple[int, ...], trailing: int, order: int) -> int:
-    """The number of control points; ``ValueError`` for an order below 2 or fewer points than it."""
+    """The number of control points; ``TypeError`` for an order that is not an integer (a bool, a
+    float such as 4.0, an array: the order is static), ``ValueError`` for one below 2 or fewer points
+    than it."""
+    if isinstance(order, bool) or not isinstance(order, numbers.Integral):
+        raise TypeError(
+            f"{fname}: expected order to be an int (static), got {order!r} of type {type(order).__name__}"
+        )
     if order < 2:
         raise ValueError(f"{fname}: expected order >= 2, got {order}")
     count = shape[-1 - trailing]

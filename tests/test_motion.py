@@ -607,3 +607,25 @@ def test_parameter_derivative_at_the_ends_is_the_one_sided_one(curve: str) -> No
     backward = jnp.stack([backward[j, :, j] for j in range(4)])
     for name, got in (("torch", torch_derivative), ("jax jvp", forward), ("jax vjp", backward)):
         np.testing.assert_allclose(np.asarray(got), reference, rtol=0, atol=1e-8, err_msg=name)
+
+
+@pytest.mark.parametrize("name", ["numpy", "torch", "jax"])
+def test_an_order_that_is_not_an_int_names_the_function_and_the_argument(name: str) -> None:
+    """``order`` is static: 4.0, True, "4" or an array raise ``TypeError`` naming the function and
+    ``order`` on every backend (4.0 used to raise Python's "'float' object cannot be interpreted as an
+    integer"); a NumPy integer is an int."""
+    import importlib
+
+    dq = importlib.import_module(f"diffquat.{name}")
+    control = np.tile(np.eye(4), (6, 1, 1))
+    if name == "torch":
+        control = torch.tensor(control)
+    calls = {
+        "so3_bspline": lambda **k: dq.so3_bspline(control[:, :3, :3], 0.5, **k),
+        "se3_bspline": lambda **k: dq.se3_bspline(control, 0.5, **k),
+    }
+    for fname, call in calls.items():
+        for order in (4.0, True, "4", np.array(4)):
+            with pytest.raises(TypeError, match=rf"^{fname}: expected order to be an int"):
+                call(order=order)
+        assert np.all(np.isfinite(np.asarray(call(order=np.int64(4))[1])))
