@@ -850,3 +850,22 @@ def test_below_the_smallest_sigma_samples_scale_the_gaussian(backend: Backend, p
             r_dot = np.asarray(jax.jvp(sample, (t,), (jax.numpy.ones_like(t),))[1]).astype(np.float64)
             slope = np.stack([r_dot[:, 2, 1], r_dot[:, 0, 2], r_dot[:, 1, 0]], -1)
         assert np.all(np.abs(slope - quantile[:, None] * axis) <= (bound + 8 * eps * quantile)[:, None]), s
+
+
+def test_sampler_exports_with_a_dynamic_batch() -> None:
+    """``torch.export`` of ``igso3_sample`` with a dynamic batch of sigma (it failed with torch's
+    "SymIntArrayRef expected to contain only concrete integers" while a static batch exported: the
+    wrapper passed ``generator=None`` to ``torch.rand``): the exported program, run at another batch
+    size from the same global seed, draws what eager draws, bit for bit."""
+
+    class Sample(torch.nn.Module):
+        def forward(self, sigma: torch.Tensor) -> torch.Tensor:
+            return dtorch.igso3_sample(sigma, 3)
+
+    batch = torch.export.Dim("batch")
+    exported = torch.export.export(Sample(), (torch.tensor([0.1, 0.5]),), dynamic_shapes=({0: batch},))
+    sigma = torch.tensor([1e-3, 0.2, 1.0, 3.0, 0.0])
+    torch.manual_seed(3)
+    got = exported.module()(sigma)
+    torch.manual_seed(3)
+    assert torch.equal(got, dtorch.igso3_sample(sigma, 3))

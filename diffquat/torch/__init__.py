@@ -480,7 +480,11 @@ def igso3_sample(
     (checked,), dtype = _B.validate("igso3_sample", sigma)
     compute = _B.compute_dtype(dtype)
     size = (*shape_tuple(shape), *checked.shape)
-    options: dict[str, Any] = {"generator": generator, "dtype": compute, "device": checked.device}
+    options: dict[str, Any] = {"dtype": compute, "device": checked.device}
+    if generator is not None:
+        # only when given: torch.export of rand/randn with generator=None and a dynamic batch fails
+        # ("SymIntArrayRef expected to contain only concrete integers"), without it they export
+        options["generator"] = generator
     uniform, normal = torch.rand(size, **options), torch.randn((*size, 3), **options)
     return _B(_igso3.igso3_sample, checked, uniform=uniform, normal=normal)
 
