@@ -78,7 +78,7 @@ def _exact_range(xp: Any, dtype: Any) -> float:
     return _EXACT["float32" if float(xp.finfo(dtype).eps) > 1e-10 else "float64"]
 
 
-def _fold(xp: Any, angle: Any) -> tuple[Any, Any]:
+def _fold(xp: Any, angle: Any, bounded: bool = False) -> tuple[Any, Any]:
     """The angle reduced to [-pi, pi], and ``pi`` less its size (signed: an angle within a rounding
     of pi may reduce to just past it), both to the last bit of the angle; NaN from ``|angle| >=
     _exact_range`` on (see ``_PI_HEAD``).
@@ -88,9 +88,14 @@ def _fold(xp: Any, angle: Any) -> tuple[Any, Any]:
     make every derivative of even order vanish at ``omega = 0`` (the identity). The gap to pi is taken
     from the angle itself, not from the reduction (whose rounding, 2e-16 near pi, is 2.5e-9 of a gap
     of 8.7e-8, and the derivative of log f near pi changes by ``(pi / (2 eps))^2`` times the gap)."""
-    parts = _pi_parts(xp, angle.dtype)
-    # beyond the exact range, NaN: a multiplication, so that the derivative stays the reduction's
-    angle = angle * xp.where(xp.abs(angle) < _exact_range(xp, angle.dtype), 1.0, math.nan)
+    if bounded:
+        # the sampler's angles, in [0, pi] (float32's pi at most): turns is 0 or 1 and the odd multiple
+        # 1, so that the three parts are exact in float32 too, and no angle is beyond the range
+        parts: tuple[float, ...] = (_PI_HEAD, _PI_MID, _PI_TAIL)
+    else:
+        parts = _pi_parts(xp, angle.dtype)
+        # beyond the exact range, NaN: a multiplication, so that the derivative stays the reduction's
+        angle = angle * xp.where(xp.abs(angle) < _exact_range(xp, angle.dtype), 1.0, math.nan)
     turns = xp.round(angle * (0.5 / math.pi))
     omega = angle
     for part in parts:
@@ -340,12 +345,18 @@ def igso3_log_density(xp: Any, angle: Any, sigma: Any) -> Any:
 
     Returns:
         ``log f(omega; sigma)``, shape the broadcast of both: finite for every finite sigma and
-        every angle in the exact range, accurate
-        to a few ulps of the sizes of its terms in float32 and float64 from ``sigma = 1e-4`` to 10 and
-        beyond, far into the tail where ``f`` underflows. Its integral against the angle's Haar
+        every angle in the exact range, accurate to a few ulps of the sizes of its terms in float32
+        and float64 from ``sigma = 1e-4`` to 10 and beyond, far into the tail where ``f``
+        underflows. Its integral against the angle's Haar
         marginal ``(1 - cos omega) / pi`` over [0, pi] is 1."""
+    return _log_density(xp, angle, sigma)
+
+
+def _log_density(xp: Any, angle: Any, sigma: Any, bounded: bool = False) -> Any:
+    """:func:`igso3_log_density`; ``bounded``: for angles known to be in [0, pi] (the sampler's),
+    with fewer operations (see :func:`_fold`)."""
     angle, sigma = match_rank(xp, angle, sigma)
-    omega, gap = _fold(xp, angle)
+    omega, gap = _fold(xp, angle, bounded)
     narrow, eps_dual, eps_series = _forms(xp, sigma)
     return xp.where(
         narrow, _log_density_dual(xp, omega, gap, eps_dual), _log_density_series(xp, omega, eps_series)
@@ -502,7 +513,7 @@ def _angle_density(xp: Any, omega: Any, sigma: Any) -> Any:
     """The angle's density on [0, pi], ``f(omega) (1 - cos omega) / pi``, with ``1 - cos omega`` as ``2
     sin^2(omega / 2)`` (no cancellation at small angles)."""
     half = xp.sin(0.5 * omega)
-    return xp.exp(igso3_log_density(xp, omega, sigma)) * (2.0 / math.pi) * (half * half)
+    return xp.exp(_log_density(xp, omega, sigma, True)) * (2.0 / math.pi) * (half * half)
 
 
 def _quantile_start(xp: Any, u: Any, sigma: Any) -> Any:
@@ -511,7 +522,7 @@ def _quantile_start(xp: Any, u: Any, sigma: Any) -> Any:
     upper quantile (the small-sigma limit: the rotation vector is ~ N(0, sigma^2 I)) from its tail
     ``1 - F ~ sqrt(2 / pi) (z + 1 / z) e^(-z^2 / 2)``, one fixed-point step from ``z^2 = -2 log(1 - u)``;
     neither beyond 2.31, the uniform distribution's median angle."""
-    f0 = xp.exp(igso3_log_density(xp, 0.0 * sigma, sigma))
+    f0 = xp.exp(_log_density(xp, 0.0 * sigma, sigma, True))
     low = xp.exp((xp.log(6.0 * math.pi * u) - xp.log(f0)) / 3.0)
     top = -2.0 * xp.log1p(-xp.where(u < 0.5, 0.5, u))
     z0 = xp.sqrt(top)
