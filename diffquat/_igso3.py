@@ -94,8 +94,8 @@ def _fold(xp: Any, angle: Any, bounded: bool = False) -> tuple[Any, Any]:
         parts: tuple[float, ...] = (_PI_HEAD, _PI_MID, _PI_TAIL)
     else:
         parts = _pi_parts(xp, angle.dtype)
-        # beyond the exact range, NaN: a multiplication, so that the derivative stays the reduction's
-        angle = angle * xp.where(xp.abs(angle) < _exact_range(xp, angle.dtype), 1.0, math.nan)
+        # beyond the exact range, NaN (the angle is a branch, so that numpy keeps its dtype)
+        angle = xp.where(xp.abs(angle) < _exact_range(xp, angle.dtype), angle, math.nan)
     turns = xp.round(angle * (0.5 / math.pi))
     omega = angle
     for part in parts:
