@@ -855,7 +855,8 @@ def test_below_the_smallest_sigma_samples_scale_the_gaussian(backend: Backend, p
 def test_sampler_exports_with_a_dynamic_batch() -> None:
     """``torch.export`` of ``igso3_sample`` with a dynamic batch of sigma (it failed with torch's
     "SymIntArrayRef expected to contain only concrete integers" while a static batch exported: the
-    wrapper passed ``generator=None`` to ``torch.rand``): the exported program, run at another batch
+    wrapper passed ``generator=None`` to ``torch.rand``; it draws by ``uniform_``/``normal_`` now, which
+    export with a generator or without): the exported program, run at another batch
     size from the same global seed, draws what eager draws, bit for bit."""
 
     class Sample(torch.nn.Module):
