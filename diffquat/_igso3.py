@@ -49,33 +49,64 @@ _SWITCH = 0.5
 _TERMS = 9  # series terms l = 1 ... 9
 
 
-# pi in three parts: a head of 8 bits, a middle of 24 (both exact in float32 and float64) and a tail,
-# so that pi - omega near omega = pi, and an angle less a multiple of 2 pi, lose no digits to the
-# rounding of pi: the head times a small integer and its difference with a nearby angle are exact
-# (Sterbenz), and the other parts add pi's remaining bits (~80 in all, ~56 in float32). Near pi at
-# small sigma log f curves as (pi / (2 eps))^2: at sigma = 1e-4, float32's rounding of pi (8.7e-8)
-# alone would move its derivative by 1e10, and float64's two-part split (61 bits) by 1e-5.
+# pi in parts: a head of 8 bits, a middle (float64: one part of 24 bits; float32: three of 8) and a
+# tail, so that pi - omega near omega = pi, and an angle less a multiple of 2 pi, lose no digits to the
+# rounding of pi: each part but the tail times the number of turns (or the odd multiple of pi nearest
+# the angle) is exact, their differences with the angle are exact (Sterbenz), and the tail adds pi's
+# remaining bits (~80 in all). Exact while the odd multiple has at most 53 - 24 = 29 bits in float64
+# and 24 - 8 = 16 in float32: |angle| < _EXACT (2^30 and 2^17 rad, 1.7e8 and 2.1e4 turns), beyond
+# which a reduction to the angle's last bit needs up to ~1100 bits of pi (Payne-Hanek), and the log
+# density is NaN. Near pi at small sigma log f curves as (pi / (2 eps))^2: at sigma = 1e-4, float32's
+# rounding of pi (8.7e-8) alone would move its derivative by 1e10, and float64's two-part split (61
+# bits) by 1e-5.
 _PI_HEAD = 3.140625
 _PI_MID = 9.676535846665502e-4
+_PI_MID_BYTES = (0.000965118408203125, 2.5331974029541016e-06, 1.979060471057892e-09)  # sum: _PI_MID
 _PI_TAIL = 5.126688303189038e-12
+_EXACT = {"float64": 2.0**30, "float32": 2.0**17}
 
 
-def _fold(xp: Any, angle: Any) -> tuple[Any, Any]:
+def _pi_parts(xp: Any, dtype: Any) -> tuple[float, ...]:
+    """pi's parts for ``dtype`` (float32 or float64): see ``_PI_HEAD``."""
+    if float(xp.finfo(dtype).eps) > 1e-10:
+        return (_PI_HEAD, *_PI_MID_BYTES, _PI_TAIL)
+    return (_PI_HEAD, _PI_MID, _PI_TAIL)
+
+
+def _exact_range(xp: Any, dtype: Any) -> float:
+    """The largest ``|angle|`` (excluded) that :func:`_fold` reduces exactly in ``dtype``."""
+    return _EXACT["float32" if float(xp.finfo(dtype).eps) > 1e-10 else "float64"]
+
+
+def _fold(xp: Any, angle: Any, bounded: bool = False) -> tuple[Any, Any]:
     """The angle reduced to [-pi, pi], and ``pi`` less its size (signed: an angle within a rounding
-    of pi may reduce to just past it), both to the last bit of the angle.
+    of pi may reduce to just past it), both to the last bit of the angle; NaN from ``|angle| >=
+    _exact_range`` on (see ``_PI_HEAD``).
 
     f is even and 2 pi-periodic in omega, so any real angle has the density of its reduction. The
     reduction is signed, not its absolute value: the forms below are even in it, and an ``abs`` would
     make every derivative of even order vanish at ``omega = 0`` (the identity). The gap to pi is taken
     from the angle itself, not from the reduction (whose rounding, 2e-16 near pi, is 2.5e-9 of a gap
     of 8.7e-8, and the derivative of log f near pi changes by ``(pi / (2 eps))^2`` times the gap)."""
+    if bounded:
+        # the sampler's angles, in [0, pi] (float32's pi at most): turns is 0 or 1 and the odd multiple
+        # 1, so that the three parts are exact in float32 too, and no angle is beyond the range
+        parts: tuple[float, ...] = (_PI_HEAD, _PI_MID, _PI_TAIL)
+    else:
+        parts = _pi_parts(xp, angle.dtype)
+        # beyond the exact range, NaN (the angle is a branch, so that numpy keeps its dtype)
+        angle = xp.where(xp.abs(angle) < _exact_range(xp, angle.dtype), angle, math.nan)
     turns = xp.round(angle * (0.5 / math.pi))
-    omega = ((angle - (2.0 * _PI_HEAD) * turns) - (2.0 * _PI_MID) * turns) - (2.0 * _PI_TAIL) * turns
+    omega = angle
+    for part in parts:
+        omega = omega - (2.0 * part) * turns
     # pi - |omega| = +-(odd pi - angle), with odd = 2 turns +- 1 the odd multiple of pi nearest the
     # angle on omega's side
     # (the branches are arrays, so that numpy keeps the dtype: a where of two Python floats is float64)
     odd = 2.0 * xp.where(omega < 0, turns - 0.5, turns + 0.5)
-    size = ((odd * _PI_HEAD - angle) + odd * _PI_MID) + odd * _PI_TAIL
+    size = odd * parts[0] - angle
+    for part in parts[1:]:
+        size = size + odd * part
     gap = xp.where(omega < 0, -size, size)
     # Within a rounding of an odd multiple of pi the reduction may land just past pi (float32's pi is
     # pi + 8.7e-8): the gap is then negative, and the dual form below takes it so (its k = -1 term then
@@ -87,7 +118,7 @@ def _fold(xp: Any, angle: Any) -> tuple[Any, Any]:
 def _smallest_eps(xp: Any, dtype: Any) -> float:
     """The smallest ``eps`` the dual form is evaluated at: ``sqrt(1e3 / max)``, so that its largest
     first derivatives, ``omega^2 / (4 eps^2)`` and the like with numerators below 1e3, stay finite
-    (float32: sigma >= 1.8e-9; float64: sigma >= 2.2e-76). Below it the density is that of this
+    (float32: sigma >= 1.85e-9; float64: sigma >= 6.9e-77). Below it the density is that of this
     ``eps``, and its derivative in sigma is 0 (docs/igso3.md)."""
     return math.sqrt(1e3 / float(xp.finfo(dtype).max))
 
@@ -302,21 +333,30 @@ def igso3_log_density(xp: Any, angle: Any, sigma: Any) -> Any:
     normalised Haar measure (docs/igso3.md).
 
     Args:
-        angle: rotation angles ``omega`` in radians, shape ``(...)``; any real angle is reduced to
-            [-pi, pi] (the density is even and 2 pi-periodic in it).
+        angle: rotation angles ``omega`` in radians, shape ``(...)``; an angle is reduced to [-pi,
+            pi] exactly (the density is even and 2 pi-periodic in it) below ``2^30`` rad in float64
+            and ``2^17`` in float32; from there on the result is NaN (an exact reduction would need
+            up to ~1100 bits of pi).
         sigma: the concentration, shape ``(...)``, broadcasting against ``angle``: the heat kernel at
             time ``sigma^2``, so that for small ``sigma`` the rotation vector is close to
             ``N(0, sigma^2 I_3)`` (papers that write ``exp(-l (l + 1) sigma^2)`` use ``sigma / sqrt(2)``
             of this one). It enters as ``sigma^2``: ``-sigma`` gives the same density. Below
-            ``sqrt(2 sqrt(1e3 / finfo.max))`` (float32 1.8e-9, float64 2.2e-76) it is taken as that.
+            ``sqrt(2 sqrt(1e3 / finfo.max))`` (float32 1.85e-9, float64 6.9e-77) it is taken as that.
 
     Returns:
-        ``log f(omega; sigma)``, shape the broadcast of both: finite for every finite input, accurate
-        to a few ulps of the sizes of its terms in float32 and float64 from ``sigma = 1e-4`` to 10 and
-        beyond, far into the tail where ``f`` underflows. Its integral against the angle's Haar
+        ``log f(omega; sigma)``, shape the broadcast of both: finite for every finite sigma and
+        every angle in the exact range, accurate to a few ulps of the sizes of its terms in float32
+        and float64 from ``sigma = 1e-4`` to 10 and beyond, far into the tail where ``f``
+        underflows. Its integral against the angle's Haar
         marginal ``(1 - cos omega) / pi`` over [0, pi] is 1."""
+    return _log_density(xp, angle, sigma)
+
+
+def _log_density(xp: Any, angle: Any, sigma: Any, bounded: bool = False) -> Any:
+    """:func:`igso3_log_density`; ``bounded``: for angles known to be in [0, pi] (the sampler's),
+    with fewer operations (see :func:`_fold`)."""
     angle, sigma = match_rank(xp, angle, sigma)
-    omega, gap = _fold(xp, angle)
+    omega, gap = _fold(xp, angle, bounded)
     narrow, eps_dual, eps_series = _forms(xp, sigma)
     return xp.where(
         narrow, _log_density_dual(xp, omega, gap, eps_dual), _log_density_series(xp, omega, eps_series)
@@ -473,7 +513,7 @@ def _angle_density(xp: Any, omega: Any, sigma: Any) -> Any:
     """The angle's density on [0, pi], ``f(omega) (1 - cos omega) / pi``, with ``1 - cos omega`` as ``2
     sin^2(omega / 2)`` (no cancellation at small angles)."""
     half = xp.sin(0.5 * omega)
-    return xp.exp(igso3_log_density(xp, omega, sigma)) * (2.0 / math.pi) * (half * half)
+    return xp.exp(_log_density(xp, omega, sigma, True)) * (2.0 / math.pi) * (half * half)
 
 
 def _quantile_start(xp: Any, u: Any, sigma: Any) -> Any:
@@ -482,7 +522,7 @@ def _quantile_start(xp: Any, u: Any, sigma: Any) -> Any:
     upper quantile (the small-sigma limit: the rotation vector is ~ N(0, sigma^2 I)) from its tail
     ``1 - F ~ sqrt(2 / pi) (z + 1 / z) e^(-z^2 / 2)``, one fixed-point step from ``z^2 = -2 log(1 - u)``;
     neither beyond 2.31, the uniform distribution's median angle."""
-    f0 = xp.exp(igso3_log_density(xp, 0.0 * sigma, sigma))
+    f0 = xp.exp(_log_density(xp, 0.0 * sigma, sigma, True))
     low = xp.exp((xp.log(6.0 * math.pi * u) - xp.log(f0)) / 3.0)
     top = -2.0 * xp.log1p(-xp.where(u < 0.5, 0.5, u))
     z0 = xp.sqrt(top)
@@ -545,7 +585,10 @@ SAMPLE_DOC = """Rotations drawn from IGSO(3) about the identity (docs/igso3.md).
     ``igso3_angle_cdf``, with a fixed number of safeguarded Newton steps (no data-dependent control
     flow: it works under jit, vmap and torch.compile) to within the CDF's own accuracy. Differentiable
     in sigma by implicit reparameterisation, ``d omega / d sigma = -(dF / d sigma) / p(omega)``: the
-    derivative of a sample's angle at fixed random numbers. For a mean M, ``M @ sample``; for a
+    derivative of a sample's angle at fixed random numbers. Below the smallest sigma the density is
+    taken at (float32 1.85e-9, float64 6.9e-77), sigma = 0 included, the angle is sigma / smallest
+    times the one drawn there: the rotation vector is N(0, sigma^2 I) to below an ulp, sigma = 0
+    gives the identity, and d omega / d sigma is the Maxwell quantile. For a mean M, ``M @ sample``; for a
     distribution at time sigma^2 after another at s^2, compose samples (IGSO(3) is a semigroup:
     ``sqrt(sigma^2 + s^2)``)."""
 
@@ -559,7 +602,15 @@ def igso3_sample(xp: Any, sigma: Any, *, uniform: Any, normal: Any) -> Any:
     sigma, uniform = match_rank(xp, sigma, uniform)
     tiny = xp.finfo(uniform.dtype).tiny
     u = xp.where(uniform > tiny, uniform, tiny)  # u = 0 would give log(0) in the lower-half step
-    omega = _angle_quantile(xp, u, sigma)
+    # Below the smallest sigma the density is evaluated at (_forms), the angle is sigma / smallest times
+    # the one drawn at the smallest: there IGSO(3) is the Gaussian N(0, sigma^2 I) of the rotation
+    # vector to below an ulp (its relative corrections are ~sigma^2 <= 1e-17), whose angle scales with
+    # sigma; sigma = 0 gives the identity, and d omega / d sigma is the Maxwell quantile omega / sigma.
+    # The inversion itself never sees such a sigma: its start and steps would underflow there.
+    smallest = math.sqrt(2.0 * _smallest_eps(xp, uniform.dtype))
+    below = 0.5 * (sigma * sigma) < _smallest_eps(xp, uniform.dtype)
+    scale = xp.where(below, sigma * (1.0 / smallest), 1.0)
+    omega = scale * _angle_quantile(xp, u, xp.where(below, smallest, sigma))
     norm2 = xp.sum(normal * normal, axis=-1, keepdims=True)
     ok = norm2 > 0.0
     axis = xp.where(

@@ -31,6 +31,7 @@ finite gradient, as ``so3_log`` does.
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable
 from fractions import Fraction
 from typing import Any
@@ -268,10 +269,14 @@ def _segment(xp: Any, u: Any, segments: int) -> tuple[Any, Any]:
     parameters ``u`` clamped to [0, segments]: ``u = i + s``, with the end ``u = segments`` in the last
     segment at ``s = 1``. The index is a selection (a zero derivative), the fraction carries ``u``'s.
 
+    The clamp is two selections, not a clip, so that at the ends ``u = 0`` and ``u = segments`` the
+    derivative in ``u`` is the one-sided one from inside on every backend (jax's clip halves it there:
+    a tie of min or max splits the derivative; torch's clamp passes it whole); outside, it is 0.
+
     A NaN parameter takes segment 0 (an index must be in range on every backend: numpy and torch
     raise on one that is not) and keeps its NaN in the fraction, so the values at it are NaN."""
-    uc = xp.clip(u, 0.0, float(segments))
-    # uc >= 0 is False only where uc is NaN (the clip has put every number in range)
+    uc = xp.where(u < 0.0, 0.0, xp.where(u > float(segments), float(segments), u))
+    # uc >= 0 is False only where uc is NaN (the selections have put every number in range)
     i = xp.clip(xp.floor(xp.where(uc >= 0.0, uc, 0.0)), 0.0, float(segments - 1))
     return i, uc - i
 
@@ -418,7 +423,13 @@ def _basis(xp: Any, s: Any, order: int) -> list[tuple[Any, Any, Any]]:
 
 
 def _check_spline(fname: str, shape: tuple[int, ...], trailing: int, order: int) -> int:
-    """The number of control points; ``ValueError`` for an order below 2 or fewer points than it."""
+    """The number of control points; ``TypeError`` for an order that is not an integer (a bool, a
+    float such as 4.0, an array: the order is static), ``ValueError`` for one below 2 or fewer points
+    than it."""
+    if isinstance(order, bool) or not isinstance(order, numbers.Integral):
+        raise TypeError(
+            f"{fname}: expected order to be an int (static), got {order!r} of type {type(order).__name__}"
+        )
     if order < 2:
         raise ValueError(f"{fname}: expected order >= 2, got {order}")
     count = shape[-1 - trailing]

@@ -688,12 +688,14 @@ for _fn in (pose_to_matrix, matrix_to_pose):
 # Means and fits of point sets
 
 
-def _weights_and_total(xp: Any, weights: Any, like: Any) -> tuple[Any, Any]:
-    """Weights ``(..., N)`` (ones where ``None``) broadcast to ``like``'s ``(..., N)``, and their sum
-    ``(..., 1)`` with 1 where it is 0 (no weight at all: the means are then 0, not NaN)."""
+def _weights_and_total(xp: Any, weights: Any, like: Any) -> tuple[Any, Any, Any]:
+    """Weights ``(..., N)`` (ones where ``None``) broadcast to ``like``'s ``(..., N)``, their sum
+    ``(..., 1)`` with 1 where it is not positive (no weight at all: the means are then 0, not NaN),
+    and whether it is positive."""
     w = xp.ones_like(like) if weights is None else xp.broadcast_to(weights, tuple(like.shape))
     total = xp.sum(w, axis=-1, keepdims=True)
-    return w, xp.where(total > 0, total, 1.0)
+    positive = total > 0
+    return w, xp.where(positive, total, 1.0), positive
 
 
 @op(matrices=(-1, 4, 4), weights=(-1,))
@@ -714,7 +716,7 @@ def se3_mean(xp: Any, matrices: Any, weights: Any = None, *, rotation_mean: Any,
     shapes = [matrices.shape[:-3]] + ([] if weights is None else [weights.shape[:-1]])
     batch = tuple(xp.broadcast_shapes(*shapes))
     matrices = xp.broadcast_to(matrices, (*batch, n, 4, 4))
-    w, total = _weights_and_total(xp, weights, matrices[..., 0, 0])
+    w, total, _ = _weights_and_total(xp, weights, matrices[..., 0, 0])
     rotation = rotation_mean(xp, matrices[..., :3, :3], w, procrustes=procrustes)
     translation = xp.sum(w[..., None] * matrices[..., :3, 3], axis=-2) / total
     return _with_bottom(xp, xp.concat([rotation, _column(translation)], axis=-1))
@@ -731,12 +733,13 @@ def _centred(xp: Any, source: Any, target: Any, weights: Any) -> tuple[Any, ...]
     batch = tuple(xp.broadcast_shapes(*shapes))
     source = xp.broadcast_to(source, (*batch, n, 3))
     target = xp.broadcast_to(target, (*batch, n, 3))
-    w, total = _weights_and_total(xp, weights, source[..., 0])
+    w, total, positive = _weights_and_total(xp, weights, source[..., 0])
 
     def centre(x: Any) -> tuple[Any, Any]:
         # relative to the first point (0 for N = 0) first: points that are all equal give exactly
-        # zero, so a set with no spread has an exactly zero covariance (its documented rotation)
-        first = xp.sum(x[..., :1, :], axis=-2)
+        # zero, so a set with no spread has an exactly zero covariance (its documented rotation).
+        # With no weight the centroids are 0, so that the fits are the identity transform.
+        first = xp.where(positive, xp.sum(x[..., :1, :], axis=-2), 0.0)
         d = x - first[..., None, :]
         shift = xp.sum(w[..., None] * d, axis=-2) / total
         return first + shift, d - shift[..., None, :]
@@ -774,7 +777,8 @@ def fit_rigid_transform(xp: Any, source: Any, target: Any, weights: Any = None, 
         centroids. Degenerate sets have ``fit_rotation``'s rotation: coplanar points still determine
         it; collinear points and points all equal leave it undetermined, and it is then
         ``special_procrustes``' choice for the rank-1 or zero covariance (the identity for zero), with
-        a finite gradient; weights summing to zero give the identity. Scale-free: the centred
+        a finite gradient; weights summing to zero (or to less) give the identity transform (rotation
+        and translation: no point counts), with zero gradients in the points. Scale-free: the centred
         points are divided by their largest coordinate before any product, so points anywhere in
         the dtype's range (1e-30 to 1e30 in float32) give the rotation of the same points at unit
         scale. Gradients are ``special_procrustes``' (exact wherever the rotation is unique).
@@ -803,8 +807,9 @@ def fit_similarity_transform(
         ``s = tr(R^T C) / sum_i w_i |s_i - cs|^2`` (``C`` the weighted cross-covariance of the centred
         points; negative only if the target is mirrored beyond what a rotation can undo) and
         ``t = ct - s R cs``. Where the source has no spread (all points equal, or no weight) the scale
-        is 1. Scale-free as ``fit_rigid_transform``: the rotation and ``s`` are exact for points
-        anywhere in the dtype's range (``s`` itself must be representable).
+        is 1; weights summing to zero (or to less) give the identity transform and scale 1.
+        Scale-free as ``fit_rigid_transform``: the rotation and ``s`` are exact for points anywhere
+        in the dtype's range (``s`` itself must be representable).
     """
     # The core returns the pose with the scale in its bottom-right entry; each backend's wrapper
     # splits it off and restores the exact bottom row (so that the non-finite rule covers both).

@@ -72,6 +72,62 @@ def test_log_density_matches_the_reference_far_into_the_tail(backend: Backend, p
     )
 
 
+EXACT_RANGE = {"float64": 2.0**30, "float32": 2.0**17}
+
+
+@pytest.mark.parametrize("precision", list(ULPS))
+def test_large_angles_are_reduced_exactly_up_to_the_documented_range(
+    backend: Backend, precision: str
+) -> None:
+    """Angles up to the exact range of the reduction (2^30 rad in float64, 2^17 in float32, where the
+    odd multiple of pi nearest the angle times each part of pi but its tail is exact) have the density
+    of their exact reduction, within the 4 ulps of the size of the terms of the test above: random
+    angles in every decade, the float nearest the range, and the floats nearest large odd multiples of
+    pi and large multiples of 2 pi (the cancelling cases), at sigma = 0.01, 0.3, 2 (both forms). From the
+    range on, and for -angle too, NaN (before: wrong from 1e15 rad in float64 and 1e5 in float32, by
+    up to 260 in log f, then NaN from 1e17 and 1e9 with no documented bound)."""
+    limit = EXACT_RANGE[precision]
+    rng = np.random.default_rng(5)
+    turns = np.array([limit / (2 * math.pi) - 1, limit / (4 * math.pi) + 7, 12345.0])
+    angle = np.concatenate(
+        [
+            10.0 ** rng.uniform(1, math.log10(limit), 12),
+            [np.nextafter(np.float32(limit), 0) if precision == "float32" else np.nextafter(limit, 0)],
+            2 * math.pi * turns,
+            (2 * turns + 1) * math.pi,
+        ]
+    )
+    angle = np.concatenate([angle, -angle]).astype(precision).astype(np.float64)
+    assert np.all(np.abs(angle) < limit)
+    for sigma in [0.01, 0.3, 2.0]:
+        s = np.full_like(angle, sigma).astype(precision).astype(np.float64)
+        got = backend.to_numpy(
+            backend.module.igso3_log_density(backend.array(angle, precision), backend.array(s, precision))
+        )
+        with mpmath.workdps(60):
+            expected = np.array(
+                [float(igso3_reference(mpmath.mpf(x), mpmath.mpf(y))) for x, y in zip(angle, s, strict=True)]
+            )
+        # the size of the terms at the reduced angle (the reference's own reduction)
+        reduced = np.abs(np.remainder(angle + math.pi, 2 * math.pi) - math.pi)
+        error = np.abs(got - expected) / igso3_scale(reduced, s) / np.finfo(precision).eps
+        worst = int(np.argmax(error))
+        assert error[worst] <= ULPS[precision], (
+            sigma,
+            angle[worst],
+            got[worst],
+            expected[worst],
+            error[worst],
+        )
+    beyond = np.array([limit, -limit, 2 * limit, float(np.finfo(precision).max)])
+    out = backend.to_numpy(
+        backend.module.igso3_log_density(
+            backend.array(beyond, precision), backend.array(np.full(4, 0.3), precision)
+        )
+    )
+    assert np.all(np.isnan(out)), out
+
+
 def _derivatives(backend: Backend, angle: np.ndarray, sigma: np.ndarray, precision: str) -> tuple[Any, Any]:
     """d log f / d angle and d log f / d sigma, elementwise, by the backend's reverse mode."""
     fn = backend.module.igso3_log_density
@@ -727,3 +783,90 @@ def test_sampler_traces_under_jit_vmap_and_torch_compile() -> None:
         np.testing.assert_array_equal(
             np.asarray(mapped[i]), np.asarray(dj.igso3_sample(sigma[i], 3, key=keys[i]))
         )
+
+
+@pytest.mark.parametrize("precision", ["float32", "float64"])
+def test_below_the_smallest_sigma_samples_scale_the_gaussian(backend: Backend, precision: str) -> None:
+    """Below the smallest sigma the density is taken at (``sqrt(2 sqrt(1e3 / max))``, float32 1.9e-9,
+    float64 6.9e-77) a sample's angle is sigma times the Maxwell quantile of its uniform number, the law
+    of the rotation vector N(0, sigma^2 I), on every backend: at fixed random numbers angle / sigma is
+    scipy's ``maxwell.ppf(u)`` within F's accuracy over the density (16 ulps of 1 over the Maxwell
+    density, plus 8 ulps of the quantile for the angle's rounding), sigma = 0 gives the identity
+    exactly, and the derivative of the rotation vector in sigma (torch, jax) is the axis times that
+    quantile, at sigma = 0 as beyond. Before, float32 sigma = 1e-12 gave NaN and half-turns, and sigma =
+    0 angles of pi / 2^16 on one backend but not another."""
+    rng = np.random.default_rng(4)
+    n = 64
+    u = np.concatenate([[1e-6, 0.5, 1.0 - 2.0**-20], rng.uniform(size=n - 3)]).astype(precision)
+    normal = rng.normal(size=(n, 3)).astype(precision)
+    axis = normal.astype(np.float64) / np.linalg.norm(normal.astype(np.float64), axis=-1, keepdims=True)
+    quantile = stats.maxwell.ppf(u.astype(np.float64))
+    eps = float(np.finfo(precision).eps)
+    bound = 16 * eps / stats.maxwell.pdf(quantile) + 8 * eps * quantile
+    smallest = math.sqrt(2.0 * math.sqrt(1e3 / float(np.finfo(precision).max)))
+    sigmas = [1e-20, 1e-12, 0.5 * smallest] if precision == "float32" else [1e-300, 1e-100, 0.5 * smallest]
+    B = backend.module._B
+
+    def sample(sigma: Any) -> Any:
+        return B(
+            _igso3.igso3_sample,
+            sigma,
+            uniform=backend.array(u, precision),
+            normal=backend.array(normal, precision),
+        )
+
+    if backend.name == "jax":  # one compilation of the inversion's 16 steps, not each step's ops eagerly
+        sample = jax.jit(sample)
+
+    for s in [0.0, *sigmas]:
+        sigma = backend.array(np.full(n, s), precision)
+        r = backend.to_numpy(sample(sigma))
+        assert np.all(np.isfinite(r)), s
+        if s == 0.0:
+            np.testing.assert_array_equal(r, np.broadcast_to(np.eye(3), r.shape))
+            continue
+        s_rounded = float(np.asarray(s, precision))
+        # the rotation vector from the skew part (sin omega = omega to below an ulp), scaled first
+        vector = np.stack([r[:, 2, 1] - r[:, 1, 2], r[:, 0, 2] - r[:, 2, 0], r[:, 1, 0] - r[:, 0, 1]], -1)
+        scaled = (vector / s_rounded) / 2.0
+        assert np.all(np.abs(np.linalg.norm(scaled, axis=-1) - quantile) <= bound), s
+        np.testing.assert_allclose(
+            scaled / np.linalg.norm(scaled, axis=-1, keepdims=True), axis, atol=8 * eps
+        )
+    if not backend.differentiable:
+        return
+    for s in [0.0, sigmas[0]]:
+        if backend.name == "torch":
+            sigma = backend.array(np.full(n, s), precision).requires_grad_(True)
+            r = sample(sigma)
+            grads = [
+                torch.autograd.grad(r[:, i, j].sum(), sigma, retain_graph=True)[0]
+                for i, j in ((2, 1), (0, 2), (1, 0))
+            ]
+            slope = np.stack([backend.to_numpy(g) for g in grads], -1)
+        else:
+            # forward mode, one pass: each sample depends on its own sigma only
+            t = backend.array(np.full(n, s), precision)
+            r_dot = np.asarray(jax.jvp(sample, (t,), (jax.numpy.ones_like(t),))[1]).astype(np.float64)
+            slope = np.stack([r_dot[:, 2, 1], r_dot[:, 0, 2], r_dot[:, 1, 0]], -1)
+        assert np.all(np.abs(slope - quantile[:, None] * axis) <= (bound + 8 * eps * quantile)[:, None]), s
+
+
+def test_sampler_exports_with_a_dynamic_batch() -> None:
+    """``torch.export`` of ``igso3_sample`` with a dynamic batch of sigma (it failed with torch's
+    "SymIntArrayRef expected to contain only concrete integers" while a static batch exported: the
+    wrapper passed ``generator=None`` to ``torch.rand``; it draws by ``uniform_``/``normal_`` now, which
+    export with a generator or without): the exported program, run at another batch
+    size from the same global seed, draws what eager draws, bit for bit."""
+
+    class Sample(torch.nn.Module):
+        def forward(self, sigma: torch.Tensor) -> torch.Tensor:
+            return dtorch.igso3_sample(sigma, 3)
+
+    batch = torch.export.Dim("batch")
+    exported = torch.export.export(Sample(), (torch.tensor([0.1, 0.5]),), dynamic_shapes=({0: batch},))
+    sigma = torch.tensor([1e-3, 0.2, 1.0, 3.0, 0.0])
+    torch.manual_seed(3)
+    got = exported.module()(sigma)
+    torch.manual_seed(3)
+    assert torch.equal(got, dtorch.igso3_sample(sigma, 3))

@@ -580,3 +580,78 @@ def test_integrate_angular_velocity_at_huge_angles(backend: Backend, precision: 
     assert np.abs(np.cross(out[:, 1:], axis)).max() <= 8 * eps
     plain = backend.to_numpy(dq.quaternion_plus(q[:2], omega[:2] * dt[:2, None]))
     np.testing.assert_array_equal(out[:2], plain)
+
+
+# Each parametrised curve of the module, its parameter's range [0, end], and its inputs.
+END_CURVES: dict[str, tuple[Callable[..., Any], Callable[[], np.ndarray], float]] = {
+    "squad": (lambda xp, c, u: (m.quaternion_squad(xp, c, u),), lambda: _knots(5, 28), 4.0),
+    "so3_bspline": (m.so3_bspline, lambda: _random_control(6, 29), 3.0),
+    "se3_bspline": (m.se3_bspline, lambda: _random_poses(6, 30), 3.0),
+    "se3_bspline_split": (
+        lambda xp, c, u: m.se3_bspline(xp, c, u, mode="split"),
+        lambda: _random_poses(6, 31),
+        3.0,
+    ),
+}
+
+
+@pytest.mark.parametrize("curve", list(END_CURVES))
+def test_parameter_derivative_at_the_ends_is_the_one_sided_one(curve: str) -> None:
+    """At the ends of the parameter's range, u = 0 and u = end, the derivative of every output in u is
+    the one-sided one from inside, on torch (reverse mode) and on jax (forward and reverse): against
+    numpy's inward second-order difference (h = 1e-5: truncation ~h^2 |f'''| <= 1e-9, rounding ~1e-16
+    / h), within 1e-8 (their sizes are ~1); beyond the ends (clamped) it is 0. Before, jax's clip gave
+    half the one-sided derivative at both ends (a tie of min or max splits it), torch all of it."""
+    fn, make, end = END_CURVES[curve]
+    control = make()
+    u = np.array([-0.5, 0.0, end, end + 0.5])
+
+    def flat(xp: Any, t: Any) -> Any:
+        parts = fn(xp, xp.asarray(control), t)
+        return xp.concatenate([xp.reshape(p, (t.shape[0], -1)) for p in parts], axis=-1)  # (len(t), outputs)
+
+    h = 1e-5
+
+    def at(t: float) -> np.ndarray:
+        return np.asarray(flat(np, np.array([t])))[0]
+
+    reference = np.stack(
+        [
+            np.zeros_like(at(0.0)),
+            (-3 * at(0.0) + 4 * at(h) - at(2 * h)) / (2 * h),
+            (3 * at(end) - 4 * at(end - h) + at(end - 2 * h)) / (2 * h),
+            np.zeros_like(at(0.0)),
+        ]
+    )
+    ut = torch.tensor(u, requires_grad=True)
+    out = flat(torch, ut)
+    rows = [torch.autograd.grad(out[:, k].sum(), ut, retain_graph=True)[0] for k in range(out.shape[1])]
+    torch_derivative = torch.stack(rows, -1).numpy()
+    uj = jnp.asarray(u)
+    forward = jax.jit(lambda t: jax.jvp(lambda s: flat(JXP, s), (t,), (jnp.ones_like(t),))[1])(uj)
+    backward = jax.jit(jax.jacrev(lambda t: flat(JXP, t)))(uj)
+    backward = jnp.stack([backward[j, :, j] for j in range(4)])
+    for name, got in (("torch", torch_derivative), ("jax jvp", forward), ("jax vjp", backward)):
+        np.testing.assert_allclose(np.asarray(got), reference, rtol=0, atol=1e-8, err_msg=name)
+
+
+@pytest.mark.parametrize("name", ["numpy", "torch", "jax"])
+def test_an_order_that_is_not_an_int_names_the_function_and_the_argument(name: str) -> None:
+    """``order`` is static: 4.0, True, "4" or an array raise ``TypeError`` naming the function and
+    ``order`` on every backend (4.0 used to raise Python's "'float' object cannot be interpreted as an
+    integer"); a NumPy integer is an int."""
+    import importlib
+
+    dq = importlib.import_module(f"diffquat.{name}")
+    control = np.tile(np.eye(4), (6, 1, 1))
+    if name == "torch":
+        control = torch.tensor(control)
+    calls = {
+        "so3_bspline": lambda **k: dq.so3_bspline(control[:, :3, :3], 0.5, **k),
+        "se3_bspline": lambda **k: dq.se3_bspline(control, 0.5, **k),
+    }
+    for fname, call in calls.items():
+        for order in (4.0, True, "4", np.array(4)):
+            with pytest.raises(TypeError, match=rf"^{fname}: expected order to be an int"):
+                call(order=order)
+        assert np.all(np.isfinite(np.asarray(call(order=np.int64(4))[1])))

@@ -469,12 +469,12 @@ def test_torch_and_jax_take_the_same_steps_in_float64(name: str) -> None:
             total = total + jnp.sum((points @ jnp.swapaxes(m, -1, -2) - targets) ** 2)
         return total
 
-    transformation = make_jax()
+    transformation = make_jax(scalar_first=True)
 
     @jax.jit
     def step(params: dict[str, jax.Array], state: Any) -> tuple[dict[str, jax.Array], Any]:
         updates, state = transformation.update(jax.grad(loss_jax)(params), state, params)
-        return jo.apply_updates(params, updates), state
+        return jo.apply_updates(params, updates, scalar_first=True), state
 
     params = {"R": jnp.asarray(start), "q": jnp.asarray(q_start)}
     state = transformation.init(params)
@@ -545,14 +545,14 @@ def test_jax_parameters_stay_rotations_for_ten_thousand_float32_steps() -> None:
         "R": jnp.asarray(rotations(32).astype(np.float32)),
         "q": jnp.asarray(unit_quaternions(32).astype(np.float32)),
     }
-    transformation = jo.riemannian_sgd(0.1)
+    transformation = jo.riemannian_sgd(0.1, scalar_first=True)
     grads = jnp.asarray(rng.normal(size=(64, 32, 4)).astype(np.float32))
 
     def body(k: jax.Array, carry: Any) -> Any:
         params, state = carry
         g = grads[k % 64]
         updates, state = transformation.update({"R": g[:, :3, None] * g[:, None, 1:], "q": g}, state, params)
-        return jo.apply_updates(params, updates), state
+        return jo.apply_updates(params, updates, scalar_first=True), state
 
     params, _ = jax.jit(lambda p: jax.lax.fori_loop(0, 10_000, body, (p, transformation.init(p))))(params)
     R, q = np.asarray(params["R"], np.float64), np.asarray(params["q"], np.float64)
@@ -573,11 +573,124 @@ def test_jax_apply_updates_differentiates_to_the_tangent_gradient() -> None:
 
     zeros = {"R": jnp.zeros((4, 3), jnp.float64), "q": jnp.zeros((4, 3), jnp.float64)}
     # One compiled program each (eager jax compiles every primitive of the retraction apart).
-    through = jax.jit(jax.grad(lambda u: loss(jo.apply_updates(params, u))))(zeros)
-    project = jo.project_to_tangent().update
+    through = jax.jit(jax.grad(lambda u: loss(jo.apply_updates(params, u, scalar_first=True))))(zeros)
+    project = jo.project_to_tangent(scalar_first=True).update
     projected, _ = jax.jit(lambda p: project(jax.grad(loss)(p), optax.EmptyState(), p))(params)
     for k in params:
         np.testing.assert_allclose(np.asarray(through[k]), np.asarray(projected[k]), rtol=1e-12, atol=1e-12)
+
+
+def test_jax_quaternion_order_has_no_default_and_scalar_last_converges() -> None:
+    """A quaternion leaf's order is stated to the transformation and to apply_updates, with no
+    default in either: left out of one, ``ValueError`` naming that function and the leaf (before,
+    ``riemannian_adam(scalar_first=False)`` with ``apply_updates`` left at its default retracted in
+    the other order, silently, and the loss rose over 300 steps); stated in both, a scalar-last leaf
+    takes the steps of the same leaf scalar first (float64, to 1e-13), and matrix leaves need none."""
+    points, targets, optimum = wahba_problem(3)
+    start = dqn.matrix_to_quaternion(far_start(optimum))
+
+    def loss(params: dict[str, jax.Array], scalar_first: bool) -> jax.Array:
+        m = dqj.quaternion_to_matrix(params["q"], scalar_first=scalar_first)
+        return jnp.sum((points @ jnp.swapaxes(m, -1, -2) - targets) ** 2)
+
+    def run(scalar_first: bool, make: Callable[..., optax.GradientTransformation]) -> np.ndarray:
+        q = start if scalar_first else dqn.wxyz_to_xyzw(start)
+        transformation = make(0.02, scalar_first=scalar_first)
+
+        @jax.jit
+        def step(params: Any, state: Any) -> Any:
+            updates, state = transformation.update(jax.grad(loss)(params, scalar_first), state, params)
+            return jo.apply_updates(params, updates, scalar_first=scalar_first), state
+
+        params = {"q": jnp.asarray(q)}
+        state = transformation.init(params)
+        for _ in range(100):
+            params, state = step(params, state)
+        out = np.asarray(params["q"])
+        return out if scalar_first else dqn.xyzw_to_wxyz(out)
+
+    for make in (jo.riemannian_adam, jo.riemannian_sgd):
+        first, last = run(True, make), run(False, make)
+        np.testing.assert_allclose(last, first, rtol=0, atol=1e-13)
+        assert np.rad2deg(
+            dqn.quaternion_geodesic_distance(first, dqn.matrix_to_quaternion(optimum))
+        ).max() < (
+            np.rad2deg(dqn.quaternion_geodesic_distance(start, dqn.matrix_to_quaternion(optimum))).min()
+        )
+    params = {"q": jnp.asarray(start), "R": jnp.asarray(optimum)}
+    grads = jax.tree.map(jnp.ones_like, params)
+    for name, make in (("riemannian_adam", jo.riemannian_adam), ("riemannian_sgd", jo.riemannian_sgd)):
+        transformation = make(0.1)
+        with pytest.raises(ValueError, match=rf"^{name}: leaf \['q'\] holds quaternions.*scalar_first="):
+            transformation.update(grads, transformation.init(params), params)
+    with pytest.raises(ValueError, match=r"^project_to_tangent: leaf \['q'\] holds quaternions"):
+        jo.project_to_tangent().update(grads, optax.EmptyState(), params)
+    tangent = {"q": jnp.zeros((3, 3), jnp.float64), "R": jnp.zeros((3, 3), jnp.float64)}
+    with pytest.raises(ValueError, match=r"^apply_updates: leaf \['q'\] holds quaternions"):
+        jo.apply_updates(params, tangent)
+    # matrix leaves alone need no order, anywhere
+    matrices = {"R": params["R"]}
+    transformation = jo.riemannian_adam(0.1)
+    updates, _ = transformation.update({"R": grads["R"]}, transformation.init(matrices), matrices)
+    assert np.all(np.isfinite(np.asarray(jo.apply_updates(matrices, updates)["R"])))
+
+
+def test_jax_optax_wrappers_that_compose() -> None:
+    """The transformations map gradients (the params' shapes) to tangent updates ``(..., 3)``. So
+    ``optax.apply_if_finite(riemannian_adam(...))`` cannot compose (its rejected step is zeros of the
+    gradients' shapes: jax's cond refuses two branch types; documented), but around the tangent part
+    it does: ``chain(project_to_tangent(), apply_if_finite(chain(scale_by_riemannian_adam(),
+    scale_by_learning_rate(lr)), k))`` takes riemannian_adam's steps exactly while the gradients are
+    finite, and a non-finite gradient leaves the params and the moments as they were. Wrappers that
+    map updates to updates of their shape compose around or after the whole optimiser
+    (``optax.MultiSteps``, ``clip_by_global_norm``): the same steps as without them where they do
+    nothing (a norm below the clip; one step per update)."""
+    points, targets, optimum = wahba_problem(3)
+    start = far_start(optimum)
+    params = {"R": jnp.asarray(start)}
+
+    def loss(p: dict[str, jax.Array]) -> jax.Array:
+        return jnp.sum((points @ jnp.swapaxes(p["R"], -1, -2) - targets) ** 2)
+
+    with pytest.raises(TypeError):
+        wrapped = optax.apply_if_finite(jo.riemannian_adam(0.05), 3)
+        wrapped.update(jax.grad(loss)(params), wrapped.init(params), params)
+    guarded = optax.chain(
+        jo.project_to_tangent(),
+        optax.apply_if_finite(
+            optax.chain(jo.scale_by_riemannian_adam(), optax.scale_by_learning_rate(0.05)), 3
+        ),
+    )
+    transformations = {
+        "adam": jo.riemannian_adam(0.05),
+        "guarded": guarded,
+        "multisteps": optax.MultiSteps(jo.riemannian_adam(0.05), 1).gradient_transformation(),
+        "clipped": optax.chain(optax.clip_by_global_norm(1e6), jo.riemannian_adam(0.05)),
+    }
+    states = {k: t.init(params) for k, t in transformations.items()}
+    current = dict.fromkeys(transformations, params)
+    for k in range(6):
+        for name, t in transformations.items():
+            g = jax.grad(loss)(current[name])
+            if name == "guarded" and k == 3:  # a non-finite gradient: the step is skipped
+                before = current[name]
+                updates, states[name] = t.update(jax.tree.map(lambda x: x * jnp.nan, g), states[name], before)
+                current[name] = jo.apply_updates(before, updates)
+                # a zero step: the retraction's own rounding (through the quaternion), 8 ulps
+                np.testing.assert_allclose(
+                    np.asarray(current[name]["R"]),
+                    np.asarray(before["R"]),
+                    rtol=0,
+                    atol=8 * np.finfo(float).eps,
+                )
+                g = jax.grad(loss)(current[name])
+            with jax.numpy_dtype_promotion("standard"):  # MultiSteps' float32 counters
+                updates, states[name] = t.update(g, states[name], current[name])
+            current[name] = jo.apply_updates(current[name], updates)
+    for name in transformations:
+        np.testing.assert_allclose(
+            np.asarray(current[name]["R"]), np.asarray(current["adam"]["R"]), rtol=0, atol=1e-14, err_msg=name
+        )
 
 
 def test_jax_refusals() -> None:

@@ -564,6 +564,45 @@ def test_fits_against_roma_and_on_degenerate_sets(backend: Backend) -> None:
     assert float(backend.to_numpy(scale)) == 1.0
 
 
+@pytest.mark.parametrize("precision", ["float32", "float64"])
+def test_fits_with_no_weight_are_the_identity_transform(backend: Backend, precision: str) -> None:
+    """Weights all zero: no point counts, so both fits are the identity transform exactly (rotation and
+    translation; before, the translation was the first target point less the first source point), the
+    similarity's scale 1, with zero gradients in the points and the weights (torch, jax); a row of the
+    batch with weights keeps its fit, equal to the fit of that row alone."""
+    dq = backend.module
+    source, target, weights, _ = _point_sets(23)
+    weights = weights.copy()
+    weights[1] = 0.0
+    xs = [backend.array(x, precision) for x in (source, target, weights)]
+    rigid = backend.to_numpy(dq.fit_rigid_transform(*xs))
+    matrix, scale = dq.fit_similarity_transform(*xs)
+    matrix, scale = backend.to_numpy(matrix), backend.to_numpy(scale)
+    np.testing.assert_array_equal(rigid[1], np.eye(4))
+    np.testing.assert_array_equal(matrix[1], np.eye(4))
+    assert scale[1] == 1.0
+    alone = [backend.array(x[:1], precision) for x in (source, target, weights)]
+    np.testing.assert_array_equal(rigid[:1], backend.to_numpy(dq.fit_rigid_transform(*alone)))
+    if backend.name == "torch":
+        ts = [x[1].clone().requires_grad_(True) for x in xs]
+        out = dq.fit_rigid_transform(*ts).sum() + dq.fit_similarity_transform(*ts)[0].sum()
+        grads = [backend.to_numpy(g) for g in torch.autograd.grad(out, ts)]
+    elif backend.name == "jax":
+        grads = [
+            np.asarray(g)
+            for g in jax.grad(
+                lambda *a: dq.fit_rigid_transform(*a).sum() + dq.fit_similarity_transform(*a)[0].sum(),
+                argnums=(0, 1, 2),
+            )(*(x[1] for x in xs))
+        ]
+    else:
+        return
+    for g in grads[:2]:
+        np.testing.assert_array_equal(g, np.zeros_like(g))
+    # the fit jumps as soon as a weight is positive (to the points' own offset): finite is all there is
+    assert np.all(np.isfinite(grads[2]))
+
+
 def test_fit_gradients_on_degenerate_sets() -> None:
     """Gradients of both fits against central differences on the general and coplanar sets (torch,
     float64; the table checks the noisy weighted rows on every backend), and finite on the collinear

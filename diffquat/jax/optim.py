@@ -17,12 +17,14 @@ retraction that applies their updates.
 
 **Leaves.** With ``manifold="so3"`` (the default) every leaf the transformations see is an array of
 rotations, told apart by its trailing shape: a shape ending in ``(3, 3)`` holds rotation matrices, any
-other shape ending in ``4`` holds unit quaternions (``scalar_first`` order, ``True`` by default: w, x,
-y, z); any other shape raises ``ValueError`` naming the leaf. With ``manifold="se3"`` every leaf is an
-array of rigid transforms ``(..., 4, 4)`` (``[[R, t], [0, 1]]``), whose updates are body twists
+other shape ending in ``4`` holds unit quaternions, in the order given as ``scalar_first`` (``True``: w,
+x, y, z; ``False``: x, y, z, w), to the transformation and to ``apply_updates`` alike, with no default: a
+quaternion leaf without it raises ``ValueError`` (a default in one of the two let them disagree
+silently); any other shape raises ``ValueError`` naming the leaf. With ``manifold="se3"`` every leaf is
+an array of rigid transforms ``(..., 4, 4)`` (``[[R, t], [0, 1]]``), whose updates are body twists
 ``(rho, phi)`` ``(..., 6)``, translation first: a ``(..., 4, 4)`` leaf is quaternions under ``"so3"``, so
-the manifold is never guessed from the shape. For a pytree of rotations, poses and ordinary arrays,
-label the leaves and use ``optax.multi_transform``::
+the manifold is never guessed from the shape. For a pytree of rotations, poses and ordinary arrays, label
+the leaves and use ``optax.multi_transform``::
 
     optimizer = optax.multi_transform(
         {"so3": dqo.riemannian_adam(1e-2), "se3": dqo.riemannian_adam(1e-2, manifold="se3"),
@@ -53,7 +55,11 @@ frame (its parallel transport in ``R^3 x SO(3)`` is then the identity; this need
 rotation), and the retraction ``T exp(d)`` (``se3_plus``' value, bottom row exact).
 
 Everything works under ``jit`` and ``vmap``, on any pytree, with learning-rate schedules (optax's
-``ScalarOrSchedule``).
+``ScalarOrSchedule``). The updates are tangent vectors, not of the params' shapes: optax wrappers
+that map updates to updates of their own shape compose (``MultiSteps``, ``clip_by_global_norm``,
+``masked``, ...); ``optax.apply_if_finite`` composes around the tangent part (``chain(project_to_tangent(),
+apply_if_finite(chain(scale_by_riemannian_adam(), scale_by_learning_rate(lr)), k))``), not around
+``riemannian_adam`` itself (its rejected step has the gradients' shapes); docs/optimisation.md lists them.
 """
 
 from __future__ import annotations
@@ -144,6 +150,18 @@ def _kind(fname: str, path: Any, shape: tuple[int, ...], manifold: str) -> str:
     return kind
 
 
+def _order(fname: str, path: Any, scalar_first: bool | None) -> bool:
+    """The storage order of a quaternion leaf: it has no default, so that the transformation's
+    projection and ``apply_updates``' retraction are never left to disagree (one given, one not)."""
+    if scalar_first is None:
+        raise ValueError(
+            f"{fname}: leaf {jax.tree_util.keystr(path)} holds quaternions (..., 4): give scalar_first= "
+            "(True: w, x, y, z; False: x, y, z, w), the same to the transformation (riemannian_adam, "
+            "riemannian_sgd, project_to_tangent) and to apply_updates; the order has no default there"
+        )
+    return scalar_first
+
+
 def _tangent_zeros(fname: str, params: optax.Params, manifold: str, second: bool = False) -> optax.Updates:
     """Zeros of each leaf's dtype, the shape of its tangent vectors (``second``: of Adam's second
     moments, ``(*batch, 1)`` per rotation, ``(*batch, 2)`` per pose)."""
@@ -181,7 +199,9 @@ def _poses(fname: str, params: optax.Params | None, tree: Any, manifold: str) ->
     return [jnp.asarray(p) for p in tree.flatten_up_to(params)]
 
 
-def project_to_tangent(*, scalar_first: bool = True, manifold: str = "so3") -> optax.GradientTransformation:
+def project_to_tangent(
+    *, scalar_first: bool | None = None, manifold: str = "so3"
+) -> optax.GradientTransformation:
     """Euclidean gradients of rotation leaves to tangent vectors ``(..., 3)``, the gradient of
     ``w -> f(R exp(w))`` (``f(q exp(w))``) at ``w = 0``: ``vee(R^T G - G^T R)`` for matrices ``(..., 3,
     3)``, ``vec(q* G) / 2`` for quaternions ``(..., 4)`` (exact for unit ``q``, and for any ``q`` under a
@@ -190,20 +210,27 @@ def project_to_tangent(*, scalar_first: bool = True, manifold: str = "so3") -> o
     ``params`` in ``update``. Stateless.
 
     Args:
-        scalar_first: storage order of quaternion leaves.
+        scalar_first: storage order of quaternion leaves, required where there are any (the same as
+            ``apply_updates``'); matrix and pose leaves need none.
         manifold: ``"so3"`` (rotations) or ``"se3"`` (rigid transforms).
     """
-    _check_manifold("project_to_tangent", manifold)
+    return _project("project_to_tangent", scalar_first, manifold)
+
+
+def _project(name: str, scalar_first: bool | None, manifold: str) -> optax.GradientTransformation:
+    """``project_to_tangent``, its refusals naming ``name``."""
+    _check_manifold(name, manifold)
 
     def update(
         updates: optax.Updates, state: optax.EmptyState, params: optax.Params | None = None
     ) -> tuple[optax.Updates, optax.EmptyState]:
         if params is None:
-            raise ValueError("project_to_tangent: needs the params: optimizer.update(grads, state, params)")
+            raise ValueError(f"{name}: needs the params: optimizer.update(grads, state, params)")
 
         def one(path: Any, g: Array, p: Array) -> Array:
-            kind = _kind("project_to_tangent", path, tuple(p.shape), manifold)
-            return _optim.tangent_gradient(jnp, p, g, kind, scalar_first)
+            kind = _kind(name, path, tuple(p.shape), manifold)
+            order = _order(name, path, scalar_first) if kind == _optim.QUATERNION else True
+            return _optim.tangent_gradient(jnp, p, g, kind, order)
 
         return jax.tree_util.tree_map_with_path(one, updates, params), state
 
@@ -351,7 +378,7 @@ def riemannian_adam(
     eps: float = 1e-8,
     *,
     amsgrad: bool = False,
-    scalar_first: bool = True,
+    scalar_first: bool | None = None,
     manifold: str = "so3",
     length_scale: float = 1.0,
 ) -> optax.GradientTransformation:
@@ -367,7 +394,8 @@ def riemannian_adam(
         b2: decay rate of the second moment.
         eps: added to the square root of the second moment.
         amsgrad: keep the maximum of the second moment.
-        scalar_first: storage order of quaternion leaves.
+        scalar_first: storage order of quaternion leaves, required where there are any (the same as
+            ``apply_updates``'; a quaternion leaf without it raises ``ValueError`` at ``update``).
         manifold: ``"so3"`` (rotations) or ``"se3"`` (rigid transforms ``(..., 4, 4)``).
         length_scale: on SE(3), the translation that counts as one radian, in the translation's units (the
             metric ``|rho / s|^2 + |phi|^2``; Adam's step then moves a translation by about
@@ -376,7 +404,7 @@ def riemannian_adam(
     """
     _check_manifold("riemannian_adam", manifold, length_scale)
     return optax.chain(
-        project_to_tangent(scalar_first=scalar_first, manifold=manifold),
+        _project("riemannian_adam", scalar_first, manifold),
         scale_by_riemannian_adam(b1, b2, eps, amsgrad=amsgrad, manifold=manifold, length_scale=length_scale),
         optax.scale_by_learning_rate(learning_rate),
     )
@@ -388,7 +416,7 @@ def riemannian_sgd(
     *,
     dampening: float = 0.0,
     nesterov: bool = False,
-    scalar_first: bool = True,
+    scalar_first: bool | None = None,
     manifold: str = "so3",
     length_scale: float = 1.0,
 ) -> optax.GradientTransformation:
@@ -401,14 +429,15 @@ def riemannian_sgd(
         momentum: the momentum factor (0: plain gradient steps).
         dampening: dampening of the gradient's share in the momentum.
         nesterov: Nesterov momentum.
-        scalar_first: storage order of quaternion leaves.
+        scalar_first: storage order of quaternion leaves, required where there are any (the same as
+            ``apply_updates``'; a quaternion leaf without it raises ``ValueError`` at ``update``).
         manifold: ``"so3"`` (rotations) or ``"se3"`` (rigid transforms ``(..., 4, 4)``).
         length_scale: on SE(3), the translation that counts as one radian, in the translation's units (the
             metric ``|rho / s|^2 + |phi|^2``; the gradient's translation part is then ``s^2 g_rho``).
     """
     _check_manifold("riemannian_sgd", manifold, length_scale)
     return optax.chain(
-        project_to_tangent(scalar_first=scalar_first, manifold=manifold),
+        _project("riemannian_sgd", scalar_first, manifold),
         riemannian_momentum(
             learning_rate,
             momentum,
@@ -420,7 +449,9 @@ def riemannian_sgd(
     )
 
 
-def apply_updates(params: optax.Params, updates: optax.Updates, *, scalar_first: bool = True) -> optax.Params:
+def apply_updates(
+    params: optax.Params, updates: optax.Updates, *, scalar_first: bool | None = None
+) -> optax.Params:
     """Apply updates to a pytree of rotations (and ordinary arrays), leaf by leaf, by the update's shape.
 
     - an update ``(..., 3)`` of a leaf ``(..., 3, 3)`` (the same batch shape): ``R exp(d)``, the
@@ -438,7 +469,9 @@ def apply_updates(params: optax.Params, updates: optax.Updates, *, scalar_first:
     Args:
         params: the pytree of parameters.
         updates: the pytree of updates (the output of an optimizer's ``update``), the same structure.
-        scalar_first: storage order of quaternion leaves.
+        scalar_first: storage order of quaternion leaves, required where a quaternion leaf has a
+            tangent update (the order given to the transformation: neither has a default, so that
+            they cannot disagree silently); matrix, pose and ordinary leaves need none.
     """
 
     def one(path: Any, p: Any, u: Any) -> Any:
@@ -457,6 +490,7 @@ def apply_updates(params: optax.Params, updates: optax.Updates, *, scalar_first:
                 "matrices (..., 3, 3) or quaternions (..., 4), or twists (..., 6) of rigid transforms (..., "
                 "4, 4), of the same batch shape"
             )
-        return _optim.retract(_dq, jnp, p, u, kind, scalar_first).astype(p.dtype)
+        order = _order("apply_updates", path, scalar_first) if kind == _optim.QUATERNION else True
+        return _optim.retract(_dq, jnp, p, u, kind, order).astype(p.dtype)
 
     return jax.tree_util.tree_map_with_path(one, params, updates)

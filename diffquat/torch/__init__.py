@@ -498,8 +498,12 @@ def igso3_sample(
     (checked,), dtype = _B.validate("igso3_sample", sigma)
     compute = _B.compute_dtype(dtype)
     size = (*shape_tuple(shape), *checked.shape)
-    options: dict[str, Any] = {"generator": generator, "dtype": compute, "device": checked.device}
-    uniform, normal = torch.rand(size, **options), torch.randn((*size, 3), **options)
+    options: dict[str, Any] = {"dtype": compute, "device": checked.device}
+    # In-place draws into empty tensors, the numbers torch.rand/randn draw: torch.export of those with
+    # a generator argument (None included) and a dynamic batch fails ("SymIntArrayRef expected to
+    # contain only concrete integers"); uniform_/normal_ export with or without a generator.
+    uniform = torch.empty(size, **options).uniform_(generator=generator)
+    normal = torch.empty((*size, 3), **options).normal_(generator=generator)
     return _B(_igso3.igso3_sample, checked, uniform=uniform, normal=normal)
 
 
