@@ -41,16 +41,19 @@ from typing import Any
 
 from ._algebra import (
     axis_angle_to_matrix,
+    axis_angle_to_matrix_eager,
     axis_angle_to_quaternion,
     exp_factors,
     match_rank,
     matrix_to_axis_angle,
+    matrix_to_axis_angle_eager,
     quaternion_to_axis_angle,
 )
 from ._core import (
     Conversion,
     cancelling_factor,
     computed_once,
+    eager_form,
     matrix_to_quaternion,
     nonfinite_by_arithmetic,
     op,
@@ -142,6 +145,18 @@ def so3_log(xp: Any, matrix: Any, *, to_quaternion: Conversion = matrix_to_quate
     canonical quaternion: log jumps to the antipode there, as every logarithm must; its gradient stays
     finite."""
     return matrix_to_axis_angle(xp, matrix, to_quaternion=to_quaternion)
+
+
+@eager_form(of=so3_exp)
+def so3_exp_eager(xp: Any, omega: Any, *, to_matrix: Conversion = unit_quaternion_to_matrix) -> Any:
+    """:func:`so3_exp`, eager form: ``axis_angle_to_matrix``'s."""
+    return axis_angle_to_matrix_eager(xp, omega)
+
+
+@eager_form(of=so3_log)
+def so3_log_eager(xp: Any, matrix: Any, *, to_quaternion: Conversion = matrix_to_quaternion) -> Any:
+    """:func:`so3_log`, eager form: ``matrix_to_axis_angle``'s."""
+    return matrix_to_axis_angle_eager(xp, matrix, to_quaternion=to_quaternion)
 
 
 # ---------------------------------------------------------------------------------------------------
