@@ -145,6 +145,7 @@ def quaternion_conjugate_eager(xp: Any, q: Any, *, scalar_first: bool = True) ->
     return q * (first if scalar_first else last)
 
 
+@nonfinite_by_arithmetic
 @op(q=(4,))
 def quaternion_invert(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
     """Multiplicative inverse ``conj(q) / |q|^2`` of a quaternion of any non-zero norm.
@@ -159,7 +160,10 @@ def quaternion_invert(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
         Shape ``(..., 4)``, norm ``1 / |q|``.
     """
     w, x, y, z = split_quaternion(q, scalar_first)
-    nonzero = w * w + x * x + y * y + z * z >= xp.finfo(q.dtype).tiny
+    # "not below", not ">=": a NaN row counts as non-zero, so that its NaN reaches every component
+    # through m (a NaN-propagating maximum) and n2, as an infinity does (inf * 0 in w * inv_m), and
+    # the backends add no selection after it (NONFINITE_BY_ARITHMETIC)
+    nonzero = ~(w * w + x * x + y * y + z * z < xp.finfo(q.dtype).tiny)
     # Scaled by m = max |q_i| first: the result grows as 1/|q|, so on a chain through n2 = |q|^2 the
     # derivative reaches |q|^-3 (1e45 at |q| = 1e-15, past float32). With p = q / m, |p|^2 lies in
     # [1, 4] and the largest intermediate derivative is 1/m^2. conj(q) / |q|^2 = conj(p) / (m |p|^2).
@@ -170,15 +174,31 @@ def quaternion_invert(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
     n2 = w * w + x * x + y * y + z * z
     s = xp.where(nonzero, inv_m / xp.where(nonzero, n2, 1.0), 0.0)
     return join_quaternion(xp, w * s, -x * s, -y * s, -z * s, scalar_first)
-    n2 = w * w + x * x + y * y + z * z
-    nonzero = n2 >= xp.finfo(n2.dtype).tiny
-    # Through 1/|q| twice, not 1/|q|^2 once: d(1/n2)/dn2 = -1/n2^2 on the reverse chain overflows
-    # float32 for |q| below ~3e-10 (see quaternion_to_matrix). Double where: the discarded branch
-    # sees n2 = 1, so 1/sqrt and its derivative stay finite at 0.
-    inv = xp.where(nonzero, 1.0 / xp.sqrt(xp.where(nonzero, n2, 1.0)), 0.0)
-    return join_quaternion(
-        xp, (w * inv) * inv, -(x * inv) * inv, -(y * inv) * inv, -(z * inv) * inv, scalar_first
-    )
+
+
+def _invert_constants() -> tuple[list[Any], ...]:
+    # the conjugate's signs (scalar first), 1 and 0
+    return [1.0, -1.0, -1.0, -1.0], 1.0, 0.0
+
+
+@eager_form(of=quaternion_invert)
+def quaternion_invert_eager(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
+    """:func:`quaternion_invert`, eager form: the same scaling, ``conj(q) / |q|^2 = conj(u) / (m |u|^2)``
+    with ``u = q / m``, ``m = max |q_i|``, as few vectorised operations. ``m`` is a constant of
+    differentiation: for every fixed ``m`` the map ``q -> conj(q / m) / (m |q / m|^2)`` is
+    ``conj(q) / |q|^2`` itself, so its derivative is exact, and the largest intermediate derivative is
+    of size ``1 / m^2``. The zero quaternion (``m^2 |u|^2`` below the smallest normal number) gives 0; a
+    NaN or an infinity makes ``u`` and then every component NaN (the test is "below", false for NaN)."""
+    if not scalar_first:
+        q = xp.roll(q, 1, -1)
+    signs, one, zero = constants(xp, q, _invert_constants)
+    tiny = float(xp.finfo(q.dtype).tiny)
+    m = cancelling_factor(xp, xp.linalg.vector_norm(q, float("inf"), -1, True).clamp_min(tiny))
+    u = q / m
+    den = (u * u).sum(-1, keepdim=True) * m
+    small = den * m < tiny
+    out = xp.where(small, zero, (u * signs) / xp.where(small, one, den))
+    return out if scalar_first else xp.roll(out, -1, -1)
 
 
 @op(q=(4,), v=(3,))

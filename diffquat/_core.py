@@ -557,6 +557,7 @@ def standardize_quaternion(xp: Any, q: Any, *, scalar_first: bool = True) -> Any
     return xp.where(flip[..., None], -q, q)
 
 
+@nonfinite_by_arithmetic
 @op(q=(4,))
 def normalize_quaternion(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
     """``q / |q|``; the zero quaternion gives the identity quaternion.
@@ -575,7 +576,10 @@ def normalize_quaternion(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
     nonzero = n2 >= xp.finfo(n2.dtype).tiny
     # Double where: the discarded branch sees n2 = 1, so 1/sqrt and its derivative stay finite at 0.
     inv = xp.where(nonzero, 1.0 / xp.sqrt(xp.where(nonzero, n2, 1.0)), 0.0)
-    return join_quaternion(xp, xp.where(nonzero, w * inv, 1.0), x * inv, y * inv, z * inv, scalar_first)
+    out = join_quaternion(xp, xp.where(nonzero, w * inv, 1.0), x * inv, y * inv, z * inv, scalar_first)
+    # The non-finite rows (NONFINITE_BY_ARITHMETIC): _backend.nonfinite_rows' sum of 0 * q, written
+    # here so that the eager form can take it from the norm it computes anyway.
+    return out + zero_or_nan(xp, cancelling_factor(xp, q), 1)[..., None]
 
 
 @op(q=(4,))
@@ -588,6 +592,55 @@ def wxyz_to_xyzw(xp: Any, q: Any) -> Any:
 def xyzw_to_wxyz(xp: Any, q: Any) -> Any:
     """Reorder scalar-last quaternions (x, y, z, w) to scalar-first (w, x, y, z); shape ``(..., 4)``."""
     return xp.stack([q[..., 3], q[..., 0], q[..., 1], q[..., 2]], axis=-1)
+
+
+# Eager forms of the reorderings, standardisation and normalisation (see "Eager forms" below): the
+# same values bit for bit (a roll moves the very numbers; a product with +-1 is exact).
+
+
+def wxyz_to_xyzw_eager(xp: Any, q: Any) -> Any:
+    """:func:`wxyz_to_xyzw`, eager form: one ``roll``."""
+    return xp.roll(q, -1, -1)
+
+
+def xyzw_to_wxyz_eager(xp: Any, q: Any) -> Any:
+    """:func:`xyzw_to_wxyz`, eager form: one ``roll``."""
+    return xp.roll(q, 1, -1)
+
+
+def _sign_weights() -> tuple[list[Any], ...]:
+    # the first non-zero component decides the canonical sign: weights 8, 4, 2, 1 from w to z (each
+    # exceeds the sum of those after it), in either storage order; and 1
+    return [[8.0], [4.0], [2.0], [1.0]], [[4.0], [2.0], [1.0], [8.0]], 1.0
+
+
+def standardize_quaternion_eager(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
+    """:func:`standardize_quaternion`, eager form: ``q`` times the sign of ``sgn(q) . (8, 4, 2, 1)``
+    (``copysign(1, .)``: +1 for the zero quaternion, whose sum is +0, as the componentwise form keeps
+    it), a constant of differentiation, so the gradient is +-1 times the identity as there."""
+    first, last, one = constants(xp, q, _sign_weights)
+    signs = xp.sgn(cancelling_factor(xp, q)) @ (first if scalar_first else last)
+    return q * xp.copysign(one, signs)
+
+
+def _normalize_constants() -> tuple[list[Any], ...]:
+    return [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0], 1.0, 0.0
+
+
+def normalize_quaternion_eager(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
+    """:func:`normalize_quaternion`, eager form, in six operations: ``q / |q|`` with the norm from
+    ``linalg.vector_norm`` and the zero quaternion (``|q| < sqrt(tiny)``, i.e. squared norm below the
+    smallest normal number: the square root of a power of 4 is exact) the identity. ``|q| + 0 * |q|``
+    is NaN where ``q`` holds a NaN or an infinity, so every component of such a row is NaN
+    (NONFINITE_BY_ARITHMETIC), as the componentwise form's :func:`zero_or_nan`."""
+    if not scalar_first:
+        q = xp.roll(q, 1, -1)
+    identity, _, one, zero = constants(xp, q, _normalize_constants)
+    norm = xp.linalg.vector_norm(q, 2, -1, True)
+    norm = xp.addcmul(norm, cancelling_factor(xp, norm), zero)
+    small = norm < float(xp.finfo(q.dtype).tiny) ** 0.5
+    out = xp.where(small, identity, q / xp.where(small, one, norm))
+    return out if scalar_first else xp.roll(out, -1, -1)
 
 
 @canonical
@@ -692,6 +745,16 @@ def eager_form(of: Callable[..., Any]) -> Callable[[F], F]:
         return fn
 
     return register
+
+
+# the eager forms written beside their componentwise functions, above this registry
+for _of, _form in (
+    (wxyz_to_xyzw, wxyz_to_xyzw_eager),
+    (xyzw_to_wxyz, xyzw_to_wxyz_eager),
+    (standardize_quaternion, standardize_quaternion_eager),
+    (normalize_quaternion, normalize_quaternion_eager),
+):
+    eager_form(of=_of)(_form)
 
 
 _CONSTANTS: dict[tuple[Any, ...], Any] = {}
