@@ -133,7 +133,7 @@ def quaternion_conjugate(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
     return join_quaternion(xp, w, -x, -y, -z, scalar_first)
 
 
-def _conjugate_signs() -> tuple[list[Any], ...]:
+def _conjugate_signs() -> tuple[Any, ...]:
     return [1.0, -1.0, -1.0, -1.0], [-1.0, -1.0, -1.0, 1.0]
 
 
@@ -176,7 +176,7 @@ def quaternion_invert(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
     return join_quaternion(xp, w * s, -x * s, -y * s, -z * s, scalar_first)
 
 
-def _invert_constants() -> tuple[list[Any], ...]:
+def _invert_constants() -> tuple[Any, ...]:
     # the conjugate's signs (scalar first), 1 and 0
     return [1.0, -1.0, -1.0, -1.0], 1.0, 0.0
 
@@ -230,7 +230,7 @@ def quaternion_apply(xp: Any, q: Any, v: Any, *, scalar_first: bool = True) -> A
     return xp.stack([vx + s * tx, vy + s * ty, vz + s * tz], axis=-1)
 
 
-def _unit_constants() -> tuple[list[Any], ...]:
+def _unit_constants() -> tuple[Any, ...]:
     # 1 and 0 as arrays: a Python number in a ``where`` is an operation of its own (``scalar_tensor``)
     # in eager torch; and the identity quaternion (scalar first)
     return 1.0, 0.0, [1.0, 0.0, 0.0, 0.0]
@@ -313,7 +313,7 @@ def exp_factors(xp: Any, t2: Any) -> tuple[Any, Any]:
     return w, k
 
 
-def _exp_constants() -> tuple[list[Any], ...]:
+def _exp_constants() -> tuple[Any, ...]:
     # EXP_SERIES' coefficients as arrays (torch.add/addcmul take an array for the constant term), 1, 0,
     # and the coefficients of the nine entries of R(u) = P(u) for a unit u (_core._quadratic_forms)
     (w0, w1, _), (k0, k1, _) = EXP_SERIES
@@ -393,7 +393,7 @@ def quaternion_to_axis_angle(xp: Any, q: Any, *, scalar_first: bool = True) -> A
     return out + zero_or_nan(xp, cancelling_factor(xp, q), 1)[..., None]
 
 
-def _log_constants() -> tuple[list[Any], ...]:
+def _log_constants() -> tuple[Any, ...]:
     # the identity quaternion; the weights of the canonical sign (the first non-zero component
     # decides: 8, 4, 2, 1 from w to z, as _core.matrix_to_quaternion_eager); 1, 0; the series' 1/6
     return [1.0, 0.0, 0.0, 0.0], [[8.0], [4.0], [2.0], [1.0]], 1.0, 0.0, 1 / 6
@@ -530,7 +530,7 @@ def quaternion_slerp(xp: Any, p: Any, q: Any, t: Any, *, scalar_first: bool = Tr
 
 
 @nonfinite_by_arithmetic
-def _slerp_constants() -> tuple[list[Any], ...]:
+def _slerp_constants() -> tuple[Any, ...]:
     # the coefficients of p* q (_conjugate_hamilton_forms), the identity quaternion, 1 and 0
     c, identity, zero = _conjugate_hamilton_forms()
     return c, identity, 1.0, zero
@@ -603,7 +603,7 @@ def quaternion_geodesic_distance(xp: Any, p: Any, q: Any, *, scalar_first: bool 
     return angle + bad
 
 
-def _conjugate_hamilton_forms() -> tuple[list[Any], ...]:
+def _conjugate_hamilton_forms() -> tuple[Any, ...]:
     """(16, 4): the coefficients of ``p_i q_j`` in ``p* q`` (:func:`_hamilton_forms` with the rows of
     ``p``'s vector part negated), the identity quaternion and 0."""
     (c,) = _hamilton_forms()
@@ -669,7 +669,7 @@ def matrix_geodesic_distance(xp: Any, matrix1: Any, matrix2: Any) -> Any:
     return xp.atan2(safe_norm(xp, sx * sx + sy * sy + sz * sz), cos2)
 
 
-def _geodesic_constants() -> tuple[list[Any], ...]:
+def _geodesic_constants() -> tuple[Any, ...]:
     return (0.0,)
 
 

@@ -608,7 +608,7 @@ def xyzw_to_wxyz_eager(xp: Any, q: Any) -> Any:
     return xp.roll(q, 1, -1)
 
 
-def _sign_weights() -> tuple[list[Any], ...]:
+def _sign_weights() -> tuple[Any, ...]:
     # the first non-zero component decides the canonical sign: weights 8, 4, 2, 1 from w to z (each
     # exceeds the sum of those after it), in either storage order; and 1
     return [[8.0], [4.0], [2.0], [1.0]], [[4.0], [2.0], [1.0], [8.0]], 1.0
@@ -623,7 +623,7 @@ def standardize_quaternion_eager(xp: Any, q: Any, *, scalar_first: bool = True) 
     return q * xp.copysign(one, signs)
 
 
-def _normalize_constants() -> tuple[list[Any], ...]:
+def _normalize_constants() -> tuple[Any, ...]:
     return [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0], 1.0, 0.0
 
 
@@ -760,11 +760,11 @@ for _of, _form in (
 _CONSTANTS: dict[tuple[Any, ...], Any] = {}
 
 
-def constants(xp: Any, like: Any, make: Callable[[], tuple[list[Any], ...]]) -> tuple[Any, ...]:
-    """The constant arrays ``make()`` (nested lists) in ``like``'s dtype and device, made once per map,
-    dtype and device: making one on every call is an operation (a host-to-device copy on a GPU), and
-    a map's forward makes all of them, those its rules read included, so that no backward pass makes
-    one either."""
+def constants(xp: Any, like: Any, make: Callable[[], tuple[Any, ...]]) -> tuple[Any, ...]:
+    """The constant arrays ``make()`` (nested lists, or numbers: 0-d arrays) in ``like``'s dtype and
+    device, made once per map, dtype and device: making one on every call is an operation (a
+    host-to-device copy on a GPU), and a map's forward makes all of them, those its rules read
+    included, so that no backward pass makes one either."""
     key = (make, like.dtype, like.device)
     value = _CONSTANTS.get(key)
     if value is None:

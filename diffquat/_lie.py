@@ -100,7 +100,7 @@ def so3_hat(xp: Any, omega: Any) -> Any:
     return stack_matrix(xp, [zero, -z, y, z, zero, -x, -y, x, zero])
 
 
-def _hat_forms() -> tuple[list[Any], ...]:
+def _hat_forms() -> tuple[Any, ...]:
     """(3, 9): the coefficients of ``(w_x, w_y, w_z)`` in the nine entries of ``hat(w)`` (row-major);
     (9, 3): those of the entries ``M_ij`` in ``vee(M)``, halves."""
     hat = [[0.0] * 9 for _ in range(3)]
@@ -561,7 +561,7 @@ def quaternion_minus(xp: Any, q1: Any, q2: Any, *, side: str = "right", scalar_f
     return quaternion_to_axis_angle(xp, _join(xp, *relative, True))
 
 
-def _plus_constants() -> tuple[list[Any], ...]:
+def _plus_constants() -> tuple[Any, ...]:
     """The coefficients of ``p_i q_j`` (row ``4 i + j``) in ``p q``, ``p* q`` and ``p q*`` (scalar
     first), and the identity quaternion and 1."""
     (c,) = _hamilton_forms()

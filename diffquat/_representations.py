@@ -127,7 +127,7 @@ def matrix_to_rotation_6d(xp: Any, matrix: Any, *, layout: str = "columns") -> A
     return out + zero_or_nan(xp, cancelling_factor(xp, matrix), 2)[..., None]
 
 
-def _6d_indices() -> tuple[list[Any], ...]:
+def _6d_indices() -> tuple[Any, ...]:
     # the positions of the first two columns and of the first two rows in the row-major entries
     return [0, 3, 6, 1, 4, 7], [0, 1, 2, 3, 4, 5]
 
