@@ -529,7 +529,6 @@ def quaternion_slerp(xp: Any, p: Any, q: Any, t: Any, *, scalar_first: bool = Tr
     return join_quaternion(xp, *hamilton(p_unit, split_quaternion(step, True)), scalar_first)
 
 
-@nonfinite_by_arithmetic
 def _slerp_constants() -> tuple[Any, ...]:
     # the coefficients of p* q (_conjugate_hamilton_forms), the identity quaternion, 1 and 0
     c, identity, zero = _conjugate_hamilton_forms()
@@ -577,6 +576,7 @@ def quaternion_slerp_eager(xp: Any, p: Any, q: Any, t: Any, *, scalar_first: boo
     return out if scalar_first else xp.roll(out, -1, -1)
 
 
+@nonfinite_by_arithmetic
 @op(p=(4,), q=(4,))
 def quaternion_geodesic_distance(xp: Any, p: Any, q: Any, *, scalar_first: bool = True) -> Any:
     """Angle of the rotation between ``p`` and ``q``, in [0, pi], blind to the sign of either.
