@@ -413,8 +413,8 @@ def _log_eager(xp: Any, q: Any, unit_canonical: bool = False) -> tuple[Any, Any]
     identity, weights, one, zero, sixth = constants(xp, q, _log_constants)
     norm = None
     if not unit_canonical:
-        q, norm = _nonzero_or_identity_eager(xp, q, identity)
-        q = q / xp.where(norm < float(xp.finfo(q.dtype).tiny) ** 0.5, one, norm)
+        q, norm, zero = _nonzero_or_identity_eager(xp, q, identity)
+        q = q / xp.where(zero, one, norm)
         # the sign is piecewise constant: a constant of differentiation (its zero derivative would
         # otherwise cost a backward pass through the product with the weights)
         q = q * xp.sgn(xp.sgn(cancelling_factor(xp, q)) @ weights)
@@ -554,13 +554,14 @@ def quaternion_slerp_eager(xp: Any, p: Any, q: Any, t: Any, *, scalar_first: boo
     if not scalar_first:
         p, q = xp.roll(p, 1, -1), xp.roll(q, 1, -1)
     c, identity, one, zero = constants(xp, p, _slerp_constants)
-    p, p_norm = _nonzero_or_identity_eager(xp, p, identity)
-    p = p / xp.where(p_norm < float(xp.finfo(p.dtype).tiny) ** 0.5, one, p_norm)
-    q, q_norm = _nonzero_or_identity_eager(xp, q, identity)
+    p, norm, zero = _nonzero_or_identity_eager(xp, p, identity)
+    p = p / xp.where(zero, one, norm)
+    q, norm, zero = _nonzero_or_identity_eager(xp, q, identity)
+    q = q / xp.where(zero, one, norm)
     r = xp.matmul((p[..., :, None] * q[..., None, :]).flatten(-2), c)
-    # |r| = |q| (p is unit): dividing by it with the sign of r_w makes r unit and canonical
-    n = xp.copysign(xp.where(q_norm < float(xp.finfo(q.dtype).tiny) ** 0.5, one, q_norm), r[..., :1])
-    r = r / n
+    # the shorter arc: q' = sign(r_w) q, a constant of differentiation (piecewise constant)
+    sign = xp.copysign(one, cancelling_factor(xp, r[..., :1]))
+    r = r * sign
     cos_phi, axis = r[..., :1], r[..., 1:]
     u = (axis * axis).sum(-1, keepdim=True)
     small = u < series_threshold(xp, u.dtype)
@@ -572,7 +573,7 @@ def quaternion_slerp_eager(xp: Any, p: Any, q: Any, t: Any, *, scalar_first: boo
     t2 = t * t
     k = xp.where(small, t * xp.addcmul(one, t2 - 1.0, u, value=-1 / 6), xp.sin(t_phi) / sin_phi)
     cos_t_phi = xp.where(small, xp.addcmul(one, t2, u, value=-0.5), xp.cos(t_phi))
-    out = xp.addcmul(xp.addcmul(cos_t_phi, k, cos_phi, value=-1.0) * p, k / n, q)
+    out = xp.addcmul(xp.addcmul(cos_t_phi, k, cos_phi, value=-1.0) * p, k * sign, q)
     return out if scalar_first else xp.roll(out, -1, -1)
 
 
@@ -610,13 +611,13 @@ def _conjugate_hamilton_forms() -> tuple[Any, ...]:
     return [[-v if i // 4 else v for v in row] for i, row in enumerate(c)], [1.0, 0.0, 0.0, 0.0], 0.0
 
 
-def _nonzero_or_identity_eager(xp: Any, q: Any, identity: Any) -> tuple[Any, Any]:
-    """:func:`nonzero_or_identity` of ``(..., 4)`` scalar-first quaternions in three operations, and
-    their norm (``|q| < 2^-63`` in float32 is ``|q|^2`` below the smallest normal number, 2^-126,
-    the square root being exact at a power of 4)."""
+def _nonzero_or_identity_eager(xp: Any, q: Any, identity: Any) -> tuple[Any, Any, Any]:
+    """:func:`nonzero_or_identity` of ``(..., 4)`` scalar-first quaternions in three operations, their
+    norm and the mask of the zero ones (``|q| < 2^-63`` in float32 is ``|q|^2`` below the smallest
+    normal number, 2^-126, the square root being exact at a power of 4)."""
     norm = xp.linalg.vector_norm(q, 2, -1, True)
-    root_tiny = float(xp.finfo(q.dtype).tiny) ** 0.5
-    return xp.where(norm < root_tiny, identity, q), norm
+    zero = norm < float(xp.finfo(q.dtype).tiny) ** 0.5
+    return xp.where(zero, identity, q), norm, zero
 
 
 @eager_form(of=quaternion_geodesic_distance)
@@ -628,8 +629,8 @@ def quaternion_geodesic_distance_eager(xp: Any, p: Any, q: Any, *, scalar_first:
     if not scalar_first:
         p, q = xp.roll(p, 1, -1), xp.roll(q, 1, -1)
     c, identity, zero = constants(xp, p, _conjugate_hamilton_forms)
-    p, p_norm = _nonzero_or_identity_eager(xp, p, identity)
-    q, q_norm = _nonzero_or_identity_eager(xp, q, identity)
+    p, p_norm, _ = _nonzero_or_identity_eager(xp, p, identity)
+    q, q_norm, _ = _nonzero_or_identity_eager(xp, q, identity)
     r = xp.matmul((p[..., :, None] * q[..., None, :]).flatten(-2), c)
     angle = 2.0 * xp.atan2(xp.linalg.vector_norm(r[..., 1:], 2, -1, True), xp.abs(r[..., :1]))
     # the non-finite rows: 0 * |p| is NaN exactly where p holds a NaN or an infinity

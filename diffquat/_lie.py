@@ -43,6 +43,7 @@ from ._algebra import (
     _exp_eager,
     _hamilton_forms,
     _log_eager,
+    _nonzero_or_identity_eager,
     axis_angle_to_matrix,
     axis_angle_to_matrix_eager,
     axis_angle_to_quaternion,
@@ -573,9 +574,8 @@ def _plus_constants() -> tuple[Any, ...]:
 def _unit_eager(xp: Any, q: Any, identity: Any, one: Any) -> Any:
     """``(..., 4)`` scalar-first quaternions over their norm, the zero quaternion (``|q| < sqrt(tiny)``:
     squared norm below the smallest normal number, as :func:`_unit`) the identity."""
-    norm = xp.linalg.vector_norm(q, 2, -1, True)
-    small = norm < float(xp.finfo(q.dtype).tiny) ** 0.5
-    return xp.where(small, identity, q / xp.where(small, one, norm))
+    q, norm, zero = _nonzero_or_identity_eager(xp, q, identity)
+    return q / xp.where(zero, one, norm)
 
 
 def _outer(xp: Any, p: Any, q: Any, forms: Any) -> Any:
