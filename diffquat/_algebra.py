@@ -160,19 +160,19 @@ def quaternion_invert(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
         Shape ``(..., 4)``, norm ``1 / |q|``.
     """
     w, x, y, z = split_quaternion(q, scalar_first)
-    # "not below", not ">=": a NaN row counts as non-zero, so that its NaN reaches every component
-    # through m (a NaN-propagating maximum) and n2, as an infinity does (inf * 0 in w * inv_m), and
-    # the backends add no selection after it (NONFINITE_BY_ARITHMETIC)
-    nonzero = ~(w * w + x * x + y * y + z * z < xp.finfo(q.dtype).tiny)
+    # "below", not ">=" (false for NaN): a NaN row counts as non-zero, so that its NaN reaches every
+    # component through m (a NaN-propagating maximum) and n2, as an infinity does (inf * 0 in
+    # w * inv_m), and the backends add no selection after it (NONFINITE_BY_ARITHMETIC)
+    zero = w * w + x * x + y * y + z * z < xp.finfo(q.dtype).tiny
     # Scaled by m = max |q_i| first: the result grows as 1/|q|, so on a chain through n2 = |q|^2 the
     # derivative reaches |q|^-3 (1e45 at |q| = 1e-15, past float32). With p = q / m, |p|^2 lies in
     # [1, 4] and the largest intermediate derivative is 1/m^2. conj(q) / |q|^2 = conj(p) / (m |p|^2).
     # Double wheres: the discarded branch divides by 1, so everything stays finite at q = 0.
     m = xp.maximum(xp.maximum(xp.abs(w), xp.abs(x)), xp.maximum(xp.abs(y), xp.abs(z)))
-    inv_m = xp.where(nonzero, 1.0 / xp.where(nonzero, m, 1.0), 0.0)
+    inv_m = xp.where(zero, 0.0, 1.0 / xp.where(zero, 1.0, m))
     w, x, y, z = w * inv_m, x * inv_m, y * inv_m, z * inv_m
     n2 = w * w + x * x + y * y + z * z
-    s = xp.where(nonzero, inv_m / xp.where(nonzero, n2, 1.0), 0.0)
+    s = xp.where(zero, 0.0, inv_m / xp.where(zero, 1.0, n2))
     return join_quaternion(xp, w * s, -x * s, -y * s, -z * s, scalar_first)
 
 
@@ -355,7 +355,6 @@ def _canonical_components(xp: Any, q: Any, scalar_first: bool) -> Components:
     return xp.where(flip, -w, w), xp.where(flip, -x, x), xp.where(flip, -y, y), xp.where(flip, -z, z)
 
 
-@nonfinite_by_arithmetic
 @op(q=(4,))
 def quaternion_to_axis_angle(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
     """Rotation vector of a quaternion (the logarithm map), angle in [0, pi].
@@ -387,10 +386,7 @@ def quaternion_to_axis_angle(xp: Any, q: Any, *, scalar_first: bool = True) -> A
     # recomputing them, and into each part of a stack it would recompute the atan2 (three per
     # rotation); a broadcast reuses the factor, which XLA then keeps as one array (docs/performance.md,
     # Formula shapes). The same products, the same values.
-    out = k[..., None] * xp.stack([x, y, z], axis=-1)
-    # The non-finite rows (NONFINITE_BY_ARITHMETIC): _backend.nonfinite_rows' sum of 0 * q, written
-    # here so that the eager form can take it from the norm it computes anyway.
-    return out + zero_or_nan(xp, cancelling_factor(xp, q), 1)[..., None]
+    return k[..., None] * xp.stack([x, y, z], axis=-1)
 
 
 def _log_constants() -> tuple[Any, ...]:
@@ -430,11 +426,10 @@ def _log_eager(xp: Any, q: Any, unit_canonical: bool = False) -> tuple[Any, Any]
 
 @eager_form(of=quaternion_to_axis_angle)
 def quaternion_to_axis_angle_eager(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
-    """:func:`quaternion_to_axis_angle`, eager form (:func:`_log_eager`); ``0 * |q|`` (a constant of
-    differentiation) makes a non-finite row NaN, as the componentwise form's :func:`zero_or_nan`."""
-    (_, _, _, zero, _) = constants(xp, q, _log_constants)
-    out, norm = _log_eager(xp, q if scalar_first else xp.roll(q, 1, -1))
-    return xp.addcmul(out, cancelling_factor(xp, norm), zero)
+    """:func:`quaternion_to_axis_angle`, eager form (:func:`_log_eager`). The backend's rule makes the
+    non-finite rows NaN (``_backend.nonfinite_rows``), as after the componentwise form, which the
+    composites (slerp, the splines, IGSO(3)) call without it."""
+    return _log_eager(xp, q if scalar_first else xp.roll(q, 1, -1))[0]
 
 
 # As so3_exp, the same map: every entry reads a component of the quaternion, NaN in a non-finite row.

@@ -557,7 +557,6 @@ def standardize_quaternion(xp: Any, q: Any, *, scalar_first: bool = True) -> Any
     return xp.where(flip[..., None], -q, q)
 
 
-@nonfinite_by_arithmetic
 @op(q=(4,))
 def normalize_quaternion(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
     """``q / |q|``; the zero quaternion gives the identity quaternion.
@@ -576,10 +575,7 @@ def normalize_quaternion(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
     nonzero = n2 >= xp.finfo(n2.dtype).tiny
     # Double where: the discarded branch sees n2 = 1, so 1/sqrt and its derivative stay finite at 0.
     inv = xp.where(nonzero, 1.0 / xp.sqrt(xp.where(nonzero, n2, 1.0)), 0.0)
-    out = join_quaternion(xp, xp.where(nonzero, w * inv, 1.0), x * inv, y * inv, z * inv, scalar_first)
-    # The non-finite rows (NONFINITE_BY_ARITHMETIC): _backend.nonfinite_rows' sum of 0 * q, written
-    # here so that the eager form can take it from the norm it computes anyway.
-    return out + zero_or_nan(xp, cancelling_factor(xp, q), 1)[..., None]
+    return join_quaternion(xp, xp.where(nonzero, w * inv, 1.0), x * inv, y * inv, z * inv, scalar_first)
 
 
 @op(q=(4,))
@@ -624,20 +620,19 @@ def standardize_quaternion_eager(xp: Any, q: Any, *, scalar_first: bool = True) 
 
 
 def _normalize_constants() -> tuple[Any, ...]:
-    return [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0], 1.0, 0.0
+    return [1.0, 0.0, 0.0, 0.0], 1.0
 
 
 def normalize_quaternion_eager(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
-    """:func:`normalize_quaternion`, eager form, in six operations: ``q / |q|`` with the norm from
+    """:func:`normalize_quaternion`, eager form, in five operations: ``q / |q|`` with the norm from
     ``linalg.vector_norm`` and the zero quaternion (``|q| < sqrt(tiny)``, i.e. squared norm below the
-    smallest normal number: the square root of a power of 4 is exact) the identity. ``|q| + 0 * |q|``
-    is NaN where ``q`` holds a NaN or an infinity, so every component of such a row is NaN
-    (NONFINITE_BY_ARITHMETIC), as the componentwise form's :func:`zero_or_nan`."""
+    smallest normal number: the square root of a power of 4 is exact) the identity. The backend's
+    rule makes the non-finite rows NaN, as after the componentwise form, which composites (the
+    splines, the quaternion mean) call without it."""
     if not scalar_first:
         q = xp.roll(q, 1, -1)
-    identity, _, one, zero = constants(xp, q, _normalize_constants)
+    identity, one = constants(xp, q, _normalize_constants)
     norm = xp.linalg.vector_norm(q, 2, -1, True)
-    norm = xp.addcmul(norm, cancelling_factor(xp, norm), zero)
     small = norm < float(xp.finfo(q.dtype).tiny) ** 0.5
     out = xp.where(small, identity, q / xp.where(small, one, norm))
     return out if scalar_first else xp.roll(out, -1, -1)
