@@ -174,6 +174,16 @@ def cancelling_factor(xp: Any, x: Any) -> Any:
     return x if drop is None else drop(x)
 
 
+def range_divisor(xp: Any, largest: Any) -> Any:
+    """What to divide arrays by whose largest absolute entry is ``largest`` (keepdims) before their
+    squares are taken, for maps blind to that scale: ``largest / 16`` (1 where that is 0), a constant
+    of differentiation (``cancelling_factor``). The largest entry becomes 16, so no square over- or
+    underflows. 16, not 1: XLA divides by a broadcast divisor as a product with its reciprocal, which
+    is subnormal and flushed to zero for divisors beyond 2^126 in float32 (2^1022 in float64)."""
+    divisor = largest * 0.0625
+    return cancelling_factor(xp, xp.where(divisor > 0, divisor, 1.0))
+
+
 def _negative_canonical(w: Any, x: Any, y: Any, z: Any) -> Any:
     """True where the quaternion is not in canonical sign: w < 0, or w = 0 and the first non-zero of
     (x, y, z) is negative. This is scipy's ``as_quat(canonical=True)`` rule."""

@@ -195,12 +195,34 @@ def integrate_angular_velocity(
     Returns:
         Unit quaternions, shape ``(..., 4)``, the sign the product's (continuous in ``w dt``; not
         standardised). ``angular_velocity_from_quaternions`` of ``q`` and this step gives ``w`` back
-        while ``|w dt| < pi``.
+        while ``|w dt| < pi``. Finite and unit for every finite ``w dt``: a rotation vector whose
+        squared length would overflow (|w dt| beyond ~4.6e18 rad in float32, 3.3e153 in float64) is
+        first reduced modulo 4 pi along its axis; at such angles the rounding of ``w dt`` has long
+        lost every turn (beyond 1 / eps rad), so only the axis is meaningful.
     """
     body = check_frame("integrate_angular_velocity", frame)
     omega, step = match_rank(xp, omega, dt[..., None])
     side = "right" if body else "left"
-    return quaternion_plus(xp, q, omega * step, side=side, scalar_first=scalar_first)
+    return quaternion_plus(xp, q, _within_range(xp, omega * step), side=side, scalar_first=scalar_first)
+
+
+def _within_range(xp: Any, v: Any) -> Any:
+    """The rotation vectors ``v`` ``(..., 3)``, those whose angle's square would overflow (a largest
+    component beyond sqrt(max) / 4: 4.6e18 rad in float32) reduced modulo 4 pi along their axis: the
+    same rotation and the same quaternion (exp is 4 pi periodic along a fixed axis), finite. The others
+    are ``v`` itself, bit for bit. The reduced angle is exact for the rounded angle, which has lost
+    every turn to rounding long before (beyond 1 / eps rad): the axis alone is meaningful there."""
+    largest_finite = float(xp.finfo(v.dtype).max)
+    big = xp.amax(xp.abs(v), axis=-1, keepdims=True) > largest_finite**0.5 / 4
+    # Scaled by a power of two (exact), not divided by the largest component: XLA multiplies by the
+    # reciprocal of a broadcast divisor, which flushes to zero beyond 2^126 in float32. Where big the
+    # largest component is then in [2^-8, 2^(maxexp / 2 - 6)]: the squares neither over- nor underflow.
+    c = 2.0 ** -(math.frexp(largest_finite)[1] // 2 + 6)
+    w = v * c
+    angle = xp.sqrt(xp.where(big, xp.sum(w * w, axis=-1, keepdims=True), 1.0))
+    # 2 fmod(|v| / 2, 2 pi) = |v| mod 4 pi, without |v| overflowing near the largest finite number
+    reduced = 2.0 * xp.fmod(angle * (0.5 / c), 2.0 * math.pi)
+    return xp.where(big, w * (reduced / angle), v)
 
 
 def angular_velocity_from_quaternions(

@@ -22,6 +22,7 @@ from ._core import (
     join_quaternion,
     nonfinite_by_arithmetic,
     op,
+    range_divisor,
     split_quaternion,
     stack_matrix,
     standardize_quaternion,
@@ -58,6 +59,9 @@ def _layout_axis(fname: str, layout: str) -> int:
     raise ValueError(f"{fname}: expected layout 'columns' or 'rows', got {layout!r}")
 
 
+_PARALLEL_BELOW = 8.0
+
+
 @op(d6=(6,))
 def rotation_6d_to_matrix(xp: Any, d6: Any, *, layout: str = "columns") -> Any:
     """Rotation matrix from the 6D representation of Zhou et al. (CVPR 2019), by Gram-Schmidt.
@@ -73,22 +77,36 @@ def rotation_6d_to_matrix(xp: Any, d6: Any, *, layout: str = "columns") -> Any:
         Rotation matrices, shape ``(..., 3, 3)``, whose columns (rows for ``layout="rows"``) are
         ``b1 = a1/|a1|``, ``b2`` = the normalised part of ``a2`` orthogonal to ``b1``, ``b3 = b1 x b2``.
 
-    Degenerate input never raises and has finite gradients: where ``|a1|^2`` is below the smallest
-    normal number, ``b1 = (1, 0, 0)``; where the part of ``a2`` orthogonal to ``b1`` is below
-    machine epsilon times ``|a2|`` (``a2`` zero or parallel to ``a1``), ``b2`` is the unit vector
-    orthogonal to ``b1`` in the plane of ``b1`` and the coordinate axis least aligned with ``b1``
-    (the first such axis on ties). So the zero vector gives the identity.
+    Every finite input gives a rotation (orthonormal, det 1, to a few ulps: Gram-Schmidt twice), at
+    every scale of ``a1`` and ``a2`` in the dtype's range (each is first divided by its largest
+    component). Degenerate input never raises and has finite gradients: where ``a1`` is zero,
+    ``b1 = (1, 0, 0)``; where the part of ``a2`` orthogonal to ``b1`` is at most 8 times machine
+    epsilon times ``|a2|`` (``a2`` zero or parallel to ``a1`` up to the rounding of one Gram-Schmidt
+    pass), ``b2`` is the unit vector orthogonal to ``b1`` in the plane of ``b1`` and the coordinate
+    axis least aligned with ``b1`` (the first such axis on ties). So the zero vector gives the
+    identity.
     """
     axis = _layout_axis("rotation_6d_to_matrix", layout)
-    a1, a2 = d6[..., 0:3], d6[..., 3:6]
+    # a1 and a2 each brought to a largest component of 16 (range_divisor): the map is blind to their
+    # positive scales, and no square over- or underflows, up to the largest finite number.
+    pair = xp.reshape(d6, (*d6.shape[:-1], 2, 3))
+    pair = pair / range_divisor(xp, xp.amax(xp.abs(pair), axis=-1, keepdims=True))
+    a1, a2 = pair[..., 0, :], pair[..., 1, :]
     info = xp.finfo(d6.dtype)
     n1 = xp.sum(a1 * a1, axis=-1)
     zero1 = n1 < info.tiny
     ex = xp.stack([xp.ones_like(n1), xp.zeros_like(n1), xp.zeros_like(n1)], axis=-1)
     b1 = _normalize_or(xp, a1, n1, zero1, ex)
+    # Gram-Schmidt twice ("twice is enough", Giraud et al., Numer. Math. 101, 2005): one pass leaves
+    # a component along b1 of the rounding's size, eps |a2|, which is not small beside a small
+    # remainder (columns near parallel: det 0.015 once); the second removes it to eps |u2|, so b2 is
+    # orthogonal to b1 to a few ulps for every input.
     u2 = a2 - _dot(xp, b1, a2) * b1
+    u2 = u2 - _dot(xp, b1, u2) * b1
     n_u2, n_a2 = xp.sum(u2 * u2, axis=-1), xp.sum(a2 * a2, axis=-1)
-    parallel = n_u2 <= (info.eps * info.eps) * n_a2 + info.tiny
+    # Below 8 eps |a2| the remainder is the first pass's rounding (at most ~4 eps |a2|), whose
+    # direction is the arithmetic's choice: the documented fallback instead, the same on every backend.
+    parallel = n_u2 <= (_PARALLEL_BELOW * info.eps) ** 2 * n_a2 + info.tiny
     # Fallback for b2: Gram-Schmidt of the axis e_k with the smallest |b1_k| (<= 1/sqrt(3), so the
     # residual has norm >= sqrt(2/3) and this branch never divides by a small number).
     m = xp.abs(b1)

@@ -44,6 +44,7 @@ from ._core import (
     nonfinite_by_arithmetic,
     op,
     quaternion_to_matrix,
+    range_divisor,
     small_matmul,
     stack_matrix,
     unit_quaternion_to_matrix,
@@ -722,8 +723,9 @@ def se3_mean(xp: Any, matrices: Any, weights: Any = None, *, rotation_mean: Any,
 def _centred(xp: Any, source: Any, target: Any, weights: Any) -> tuple[Any, ...]:
     """Broadcast ``source``, ``target`` ``(..., N, 3)`` and weights ``(..., N)``; their weighted
     centroids ``(..., 3)``, the weighted cross-covariance ``sum_i w_i (t_i - ct) (s_i - cs)^T`` and the
-    source's weighted spread ``sum_i w_i |s_i - cs|^2`` ``(...)``. Centred before the products: the
-    covariance of points far from the origin would otherwise cancel."""
+    source's weighted spread ``sum_i w_i |s_i - cs|^2`` ``(...)``, both of the centred points divided
+    by the largest coordinate of their set, and the ratio of those divisors (target's over source's).
+    Centred before the products: the covariance of points far from the origin would otherwise cancel."""
     n = source.shape[-2]
     shapes = [source.shape[:-2], target.shape[:-2]] + ([] if weights is None else [weights.shape[:-1]])
     batch = tuple(xp.broadcast_shapes(*shapes))
@@ -740,9 +742,20 @@ def _centred(xp: Any, source: Any, target: Any, weights: Any) -> tuple[Any, ...]
         return first + shift, d - shift[..., None, :]
 
     (cs, s), (ct, t) = centre(source), centre(target)
+    # Each centred set divided by its largest coordinate: the rotation is blind to both scales, and
+    # no product over- or underflows (points at 1e30 or 1e-30 in float32 once gave non-finite or
+    # identity rotations). Constants of differentiation: the similarity's scale multiplies their
+    # ratio back.
+    ks, kt = range_divisor(xp, _largest(xp, s)), range_divisor(xp, _largest(xp, t))
+    s, t = s / ks, t / kt
     covariance = xp.matmul(xp.swapaxes(w[..., None] * t, -1, -2), s)
     spread = xp.sum(w * xp.sum(s * s, axis=-1), axis=-1)
-    return cs, ct, covariance, spread
+    return cs, ct, covariance, spread, (kt / ks)[..., 0, 0]
+
+
+def _largest(xp: Any, x: Any) -> Any:
+    """The largest absolute coordinate of points ``(..., N, 3)``, shape ``(..., 1, 1)``."""
+    return xp.amax(xp.abs(x), axis=(-2, -1), keepdims=True)
 
 
 @op(source=(-1, 3), target=(-1, 3), weights=(-1,))
@@ -761,10 +774,12 @@ def fit_rigid_transform(xp: Any, source: Any, target: Any, weights: Any = None, 
         centroids. Degenerate sets have ``fit_rotation``'s rotation: coplanar points still determine
         it; collinear points and points all equal leave it undetermined, and it is then
         ``special_procrustes``' choice for the rank-1 or zero covariance (the identity for zero), with
-        a finite gradient; weights summing to zero give the identity. Gradients are
-        ``special_procrustes``' (exact wherever the rotation is unique).
+        a finite gradient; weights summing to zero give the identity. Scale-free: the centred
+        points are divided by their largest coordinate before any product, so points anywhere in
+        the dtype's range (1e-30 to 1e30 in float32) give the rotation of the same points at unit
+        scale. Gradients are ``special_procrustes``' (exact wherever the rotation is unique).
     """
-    cs, ct, covariance, _ = _centred(xp, source, target, weights)
+    cs, ct, covariance, _, _ = _centred(xp, source, target, weights)
     rotation = procrustes(xp, covariance)
     translation = ct - xp.matmul(rotation, _column(cs))[..., 0]
     return _with_bottom(xp, xp.concat([rotation, _column(translation)], axis=-1))
@@ -788,16 +803,16 @@ def fit_similarity_transform(
         ``s = tr(R^T C) / sum_i w_i |s_i - cs|^2`` (``C`` the weighted cross-covariance of the centred
         points; negative only if the target is mirrored beyond what a rotation can undo) and
         ``t = ct - s R cs``. Where the source has no spread (all points equal, or no weight) the scale
-        is 1.
+        is 1. Scale-free as ``fit_rigid_transform``: the rotation and ``s`` are exact for points
+        anywhere in the dtype's range (``s`` itself must be representable).
     """
     # The core returns the pose with the scale in its bottom-right entry; each backend's wrapper
     # splits it off and restores the exact bottom row (so that the non-finite rule covers both).
-    cs, ct, covariance, spread = _centred(xp, source, target, weights)
+    cs, ct, covariance, spread, ratio = _centred(xp, source, target, weights)
     rotation = procrustes(xp, covariance)
     spread_ok = spread > 0
-    scale = xp.where(
-        spread_ok, xp.sum(rotation * covariance, axis=(-1, -2)) / xp.where(spread_ok, spread, 1.0), 1.0
-    )
+    fit = xp.sum(rotation * covariance, axis=(-1, -2)) / xp.where(spread_ok, spread, 1.0)
+    scale = xp.where(spread_ok, fit * ratio, 1.0)
     translation = ct - scale[..., None] * xp.matmul(rotation, _column(cs))[..., 0]
     top = xp.concat([rotation, _column(translation)], axis=-1)
     zero = xp.zeros_like(top[..., :1, :3])
@@ -838,8 +853,7 @@ def _perpendicular(xp: Any, a: Any) -> Any:
 
 
 def _by_largest(xp: Any, v: Any) -> Any:
-    largest = xp.amax(xp.abs(v), axis=-1, keepdims=True)
-    return v / cancelling_factor(xp, xp.where(largest > 0, largest, 1.0))
+    return v / range_divisor(xp, xp.amax(xp.abs(v), axis=-1, keepdims=True))
 
 
 @op(a=(3,), b=(3,))
@@ -854,21 +868,34 @@ def rotation_between_vectors(
 
     Returns:
         Rotation matrices ``R`` with ``R a / |a| = b / |b|``, shape ``(..., 3, 3)``: the rotation by
-        ``atan2(|a x b|, a . b)`` about ``a x b``, through the quaternion. No ``1 + a . b``: exact to
-        a few ulps up to the antiparallel limit (1e-8 from it in float32 and float64). Exactly
-        antiparallel vectors have no unique shortest arc: the half-turn about the unit vector
-        orthogonal to ``a`` in the plane of ``a`` and the coordinate axis least aligned with ``a``
-        (the first such axis on ties). A zero ``a`` or ``b`` gives the identity. Gradients are finite
-        everywhere but at exactly antiparallel vectors (where the rotation jumps); near them they
-        grow like the axis' conditioning, ``1 / sin(angle)``.
+        ``atan2(|a x b|, a . b)`` about ``a x b`` (made orthogonal to ``a`` to the last bit), through
+        the quaternion. No ``1 + a . b``: ``R`` maps ``a``'s direction onto ``b``'s to a few ulps
+        (16 at most) and is a rotation to a few ulps, at every angle up to exactly pi and for
+        vectors of any length in the dtype's range. Vectors antiparallel to within 4 ulps
+        (``|a x b| <= 4 eps |a . b|``) have no shortest arc that rounding can tell apart: the
+        half-turn about the unit vector orthogonal to ``a`` in the plane of ``a`` and the coordinate
+        axis least aligned with ``a`` (the first such axis on ties), on every backend. A zero ``a``
+        or ``b`` gives the identity. Gradients are finite everywhere but at (those 4 ulps of)
+        antiparallel vectors, where the rotation jumps; near them they grow like the axis'
+        conditioning, ``1 / sin(angle)``.
     """
     a, b = match_rank(xp, a, b)
     # each divided by its largest component: the result is scale invariant, and no product over- or
     # underflows (a constant of differentiation: it cancels)
     a, b = _by_largest(xp, a), _by_largest(xp, b)
     c = _cross(xp, a, b)
+    # The axis must be orthogonal to a to the last bit: the rounding of a x b (eps |a| |b| in any
+    # direction; an FMA leaves it along a even for exactly antiparallel input) would otherwise move a
+    # by eps / sin(angle) near antiparallel vectors. a x b is orthogonal to a, so removing its
+    # component along a changes neither the value nor the derivative; |a|^2 is 0 or in [256, 768].
+    na = _dot(xp, a, a)
+    c = c - (_dot(xp, c, a) / xp.where(na > 0, na, 1.0)) * a
     d = xp.sum(a * b, axis=-1)
     u = xp.sum(c * c, axis=-1)
+    # Antiparallel to within 4 ulp (tan(gap)^2 <= (4 eps)^2: the cross product is then rounding, and
+    # its direction the arithmetic's choice): the documented half-turn, which maps a's direction onto
+    # b's to within the gap, the same on every backend.
+    antiparallel = (d < 0) & (u <= (16.0 * xp.finfo(d.dtype).eps ** 2) * (d * d))
     # rotation vector = (atan2(s, d) / s) c with s = |c| (no sqrt at 0: double where)
     series = (d > 0) & (u < _ATAN_SERIES_BELOW * (d * d))
     d_s = xp.where(series, d, 1.0)
@@ -876,11 +903,10 @@ def rotation_between_vectors(
     f_series = x * _ATAN_SERIES[-1] + _ATAN_SERIES[-2]
     for k in _ATAN_SERIES[-3::-1]:
         f_series = f_series * x + k
-    closed = ~series & (u > 0)
+    closed = ~series & ~antiparallel & (u > 0)
     s = xp.sqrt(xp.where(closed, u, 1.0))
     f_closed = xp.atan2(s, xp.where(closed, d, 0.0)) / s
     f = xp.where(series, f_series / d_s, xp.where(closed, f_closed, 0.0))
-    antiparallel = (u == 0) & (d < 0)
     rotvec = xp.where(
         antiparallel[..., None],
         math.pi * _perpendicular(xp, xp.where(antiparallel[..., None], a, 1.0)),
@@ -903,12 +929,15 @@ def frame_from_three_points(xp: Any, x1: Any, x2: Any, x3: Any) -> Any:
         Poses ``[[R, x2], [0, 1]]``, shape ``(..., 4, 4)``, with ``R``'s columns
         ``e1 = (x3 - x2) / |x3 - x2|``, ``e2`` the normalised part of ``x1 - x2`` orthogonal to
         ``e1``, and ``e3 = e1 x e2`` (Gram-Schmidt: ``rotation_6d_to_matrix`` of ``(x3 - x2, x1 - x2)``).
+        ``R`` is a rotation to a few ulps for all finite points, at every scale in the dtype's range.
         Degenerate points never raise and have finite gradients, as in ``rotation_6d_to_matrix``:
-        ``x3 = x2`` gives ``e1 = (1, 0, 0)``, and ``x1`` on the line of the other two gives the
-        ``e2`` of the coordinate axis least aligned with ``e1``.
+        ``x3 = x2`` gives ``e1 = (1, 0, 0)``, and ``x1`` on the line of the other two (to within 8
+        ulps of ``|x1 - x2|``) gives the ``e2`` of the coordinate axis least aligned with ``e1``.
     """
     p1, p2, p3 = match_rank(xp, x1, x2, x3)
-    rotation = rotation_6d_to_matrix(xp, xp.concat([p3 - p2, p1 - p2], axis=-1))
-    batch = tuple(rotation.shape[:-2])
+    along, toward = p3 - p2, p1 - p2
+    batch = tuple(xp.broadcast_shapes(along.shape[:-1], toward.shape[:-1]))  # all three's
+    d6 = xp.concat([xp.broadcast_to(along, (*batch, 3)), xp.broadcast_to(toward, (*batch, 3))], axis=-1)
+    rotation = rotation_6d_to_matrix(xp, d6)
     origin = xp.broadcast_to(p2, (*batch, 3))
     return _with_bottom(xp, xp.concat([rotation, _column(origin)], axis=-1))

@@ -3,12 +3,13 @@
 
 from __future__ import annotations
 
+import sys
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from . import _algebra, _core, _euler, _igso3, _lie, _motion, _se3
+from . import _algebra, _core, _euler, _igso3, _lie, _motion, _objects, _se3
 from . import _fisher as _fi
 from . import _representations as _rep
 from . import _statistics as _stats
@@ -26,6 +27,8 @@ from ._types import (
 )
 
 __all__ = [
+    "SE3",
+    "SO3",
     "angular_acceleration",
     "angular_velocity",
     "angular_velocity_from_quaternions",
@@ -716,3 +719,30 @@ def se3_bspline(
 ) -> tuple[NDArray[Any], NDArray[Any], NDArray[Any]]:
     packed = _B(_motion.bound_se3_bspline, control, u, order=order, mode=mode, to_quaternion=_M2Q)
     return _motion.split_se3_bspline(_B.xp, packed)
+
+
+# SO3 and SE3 objects over the functions above (diffquat._objects, written once).
+
+
+def _identity(n: int, shape: int | tuple[int, ...] = (), *, dtype: Any = np.float64) -> NDArray[Any]:
+    return np.broadcast_to(np.eye(n, dtype=dtype), (*shape_tuple(shape), n, n)).copy()
+
+
+def _draw(
+    module: Any,
+    shape: int | tuple[int, ...] = (),
+    *,
+    rng: np.random.Generator | int | None = None,
+    dtype: Any = np.float64,
+) -> tuple[NDArray[Any], NDArray[Any]]:
+    generator = np.random.default_rng(rng)
+    q = random_quaternions(shape, rng=generator, dtype=dtype)
+    return q, generator.standard_normal((*shape_tuple(shape), 3)).astype(dtype)
+
+
+SO3, SE3 = _objects.bind(
+    sys.modules[__name__],
+    _objects.Native(
+        xp=np, array=np.ndarray, identity=_identity, draw=_draw, device=lambda x: "cpu", astype=_B.astype
+    ),
+)

@@ -13,6 +13,7 @@ from __future__ import annotations
 from diffquat._public import public_modules
 
 TOPICS: dict[str, list[str]] = {
+    "Objects: SO3 and SE3": ["SO3", "SE3"],
     "Quaternions and rotation matrices": [
         "quaternion_to_matrix",
         "matrix_to_quaternion",

@@ -100,6 +100,14 @@ def _module_markdown(module: ModuleType, topic_of: dict[str, str], order: list[s
         for n in names:
             if typing.get_origin(getattr(module, n)) is typing.Literal:
                 parts.append(_literal_markdown(name, n, getattr(module, n)))
+            elif any(
+                base.__module__ == "diffquat._objects" for base in getattr(getattr(module, n), "__mro__", ())
+            ):
+                # a backend's SO3 and SE3 are subclasses that bind the backend: their methods are
+                # written once, in the base class (diffquat/_objects.py)
+                parts.append(
+                    f"::: {name}.{n}\n    options:\n      heading_level: 4\n      inherited_members: true\n"
+                )
             else:
                 parts.append(f"::: {name}.{n}\n    options:\n      heading_level: 4\n")
     return "\n".join(parts)

@@ -136,17 +136,17 @@ def make_registration(objects: int, points: int, outliers: float = 0.0, seed: in
     the truth moved by a random body twist of 5-45 degrees and 2-10 cm."""
     rng = np.random.default_rng(seed)
     model = rng.uniform(-0.1, 0.1, size=(objects, points, 3))
-    rotation = dqn.quaternion_to_matrix(dqn.random_quaternions((objects,), rng=rng))
+    rotation = dqn.SO3.random(objects, rng=rng)
     translation = np.array([0.0, 0.0, 1.0]) + rng.uniform(-0.4, 0.4, size=(objects, 3))
-    truth = dqn.se3_from_rotation_translation(rotation, translation)
+    truth = dqn.SE3.from_rotation_translation(rotation, translation)  # (B,) poses, object to sensor
     sigma = np.exp(rng.uniform(np.log(1e-3), np.log(5e-3), size=(objects, points)))
     outlier = rng.random((objects, points)) < outliers
     shift = rng.integers(1, points, size=(objects, points))  # a wrong match: another point, never itself
     matched = np.where(outlier, (np.arange(points) + shift) % points, np.arange(points))
     source = np.take_along_axis(model, matched[..., None], axis=1)
-    observed = dqn.se3_apply(truth[:, None], source) + sigma[..., None] * rng.normal(size=source.shape)
-    start = dqn.se3_plus(truth, random_twists(rng, objects, (5.0, 45.0), (0.02, 0.10)))
-    return Registration(model, observed, sigma, outlier, truth, start)
+    observed = truth[:, None] @ source + sigma[..., None] * rng.normal(size=source.shape)
+    start = truth.plus(random_twists(rng, objects, (5.0, 45.0), (0.02, 0.10)))  # T exp(delta)
+    return Registration(model, observed, sigma, outlier, truth.matrix, start.matrix)
 
 
 @dataclass(frozen=True)
@@ -168,16 +168,16 @@ def make_cameras(cameras: int, landmarks: int, sigma: float = 1.0, seed: int = 1
     body twist of 2-10 degrees (about the optical centre) and 10-30 cm."""
     rng = np.random.default_rng(seed)
     focal, centre, size = 500.0, (320.0, 240.0), (640.0, 480.0)
-    rotation = dqn.quaternion_to_matrix(dqn.random_quaternions((cameras,), rng=rng))
-    truth = dqn.se3_from_rotation_translation(rotation, rng.normal(scale=2.0 / np.sqrt(3), size=(cameras, 3)))
+    rotation = dqn.SO3.random(cameras, rng=rng)
+    truth = dqn.SE3.from_rotation_translation(rotation, rng.normal(scale=2.0 / np.sqrt(3), size=(cameras, 3)))
     u = rng.uniform(0.0, size[0], size=(cameras, landmarks))
     v = rng.uniform(0.0, size[1], size=(cameras, landmarks))
     depth = rng.uniform(2.0, 6.0, size=(cameras, landmarks))
     in_camera = np.stack([(u - centre[0]) / focal * depth, (v - centre[1]) / focal * depth, depth], axis=-1)
-    world = dqn.se3_apply(truth[:, None], in_camera)
+    world = truth[:, None] @ in_camera  # camera to world, each camera's landmarks
     pixels = np.stack([u, v], axis=-1) + sigma * rng.normal(size=(cameras, landmarks, 2))
-    start = dqn.se3_plus(truth, random_twists(rng, cameras, (2.0, 10.0), (0.10, 0.30)))
-    return Cameras(world, pixels, sigma, focal, centre, truth, start)
+    start = truth.plus(random_twists(rng, cameras, (2.0, 10.0), (0.10, 0.30)))
+    return Cameras(world, pixels, sigma, focal, centre, truth.matrix, start.matrix)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -186,8 +186,8 @@ def make_cameras(cameras: int, landmarks: int, sigma: float = 1.0, seed: int = 1
 
 def pose_errors(estimate: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rotation angle (degrees) and translation distance (mm) between poses ``(B, 4, 4)``, per pose."""
-    angle = np.rad2deg(dqn.matrix_geodesic_distance(estimate[..., :3, :3], reference[..., :3, :3]))
-    return angle, 1e3 * np.linalg.norm(estimate[..., :3, 3] - reference[..., :3, 3], axis=-1)
+    angle, distance = dqn.SE3(estimate).distance(dqn.SE3(reference))
+    return np.rad2deg(angle), 1e3 * distance
 
 
 def rigid(poses: np.ndarray) -> np.ndarray:
@@ -478,7 +478,7 @@ def irls(problem: Registration, iterations: int, cauchy: float, reference: np.nd
     elapsed = 0.0
     for _ in range(iterations):
         begin = time.perf_counter()
-        mapped = dqn.se3_apply(poses[:, None], problem.model)
+        mapped = dqn.SE3(poses)[:, None] @ problem.model
         s = problem.weights * np.sum((mapped - problem.observed) ** 2, axis=-1)
         poses = closed_form(problem, problem.weights / (1.0 + s / c**2))
         elapsed += time.perf_counter() - begin

@@ -132,6 +132,7 @@ def test_site_builds_with_every_public_name_and_every_link_resolving(site: Path)
 # configuration: the snippets run as a reader's would).
 PAGES_WITH_CODE = [
     "index.md",
+    "objects.md",
     *(f"coming-from/{p.name}" for p in sorted((DOCS / "coming-from").glob("*.md"))),
 ]
 RUNNER = """
@@ -154,7 +155,7 @@ def test_the_code_on_the_pages_runs_and_matches_the_peers() -> None:
     kornia, jaxlie, pytorch-kinematics: the test extra installs them; pytorch3d's page checks its
     documented layout without it), and the home page's quick start runs."""
     pages = [str(DOCS / p) for p in PAGES_WITH_CODE]
-    assert len(pages) == 7
+    assert len(pages) == 8
     for page in pages:
         assert "```python" in Path(page).read_text(), page
     result = subprocess.run([sys.executable, "-c", RUNNER, *pages], cwd=ROOT, capture_output=True, text=True)

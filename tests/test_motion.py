@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import torch
+from conftest import Backend
 from scipy.spatial.transform import Rotation, RotationSpline, Slerp
 
 from diffquat import _motion as m
@@ -554,3 +555,28 @@ def test_jax_jit_and_reverse_mode() -> None:
         e[k] = h
         fd = (spline(np, tangents + e.reshape(6, 3)) - spline(np, tangents - e.reshape(6, 3))) / (2 * h)
         np.testing.assert_allclose(jacobian[:, k // 3, k % 3], fd, atol=1e-8)
+
+
+@pytest.mark.parametrize("precision", ["float32", "float64"])
+def test_integrate_angular_velocity_at_huge_angles(backend: Backend, precision: str) -> None:
+    """|w dt| from 1 to the largest finite number: a finite unit quaternion whose vector part lies
+    along w (its sign the angle's choice), on every backend; once NaN from 1.8e19 rad in float32
+    (the angle's square overflowed). Below sqrt(max) / 4 the result is quaternion_plus's of w dt bit
+    for bit; beyond it only the axis is meaningful (the rounding of w dt has lost every turn), which
+    is what is checked."""
+    eps, top = float(np.finfo(precision).eps), float(np.finfo(precision).max)
+    middle = (1e18, 1e19, 1e30) if precision == "float32" else (1e150, 1e160, 1e300)
+    dts = np.array([1.0, *middle, 0.9 * top, top])
+    w = np.array([0.3, -0.5, 1.0])  # largest component 1: w dt stays finite up to dt = max
+    dq = backend.module
+    q, omega, dt = (
+        backend.array(x, precision)
+        for x in (np.tile([1.0, 0.0, 0.0, 0.0], (len(dts), 1)), np.tile(w, (len(dts), 1)), dts)
+    )
+    out = backend.to_numpy(dq.integrate_angular_velocity(q, omega, dt))
+    assert np.all(np.isfinite(out))
+    np.testing.assert_allclose(np.linalg.norm(out, axis=-1), 1.0, rtol=0, atol=4 * eps)
+    axis = w / np.linalg.norm(w)
+    assert np.abs(np.cross(out[:, 1:], axis)).max() <= 8 * eps
+    plain = backend.to_numpy(dq.quaternion_plus(q[:2], omega[:2] * dt[:2, None]))
+    np.testing.assert_array_equal(out[:2], plain)

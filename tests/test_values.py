@@ -4,6 +4,7 @@ dtype and case in the table."""
 from __future__ import annotations
 
 import contextlib
+import itertools
 import os
 import subprocess
 import sys
@@ -14,12 +15,14 @@ import numpy as np
 from cases import (
     CASES,
     DTYPES,
+    HOST_DTYPES,
     OPS,
     ROUND_TRIP_TOL,
     VALUE_TOL,
     Case,
     Op,
     hamilton,
+    host_cast,
     only,
     oracle_normalize,
     oracle_quaternion_to_matrix,
@@ -87,6 +90,29 @@ def test_values(op: Op, backend: Backend, dtype: str, case: Case) -> None:
     if op.scalar_first:
         _, last = run(op, backend, dtype, case, scalar_last=True)
         np.testing.assert_array_equal(from_scalar_last(op, last), out)
+
+
+@only(backend=lambda name: name == "torch", dtype=lambda d: d in FULL_DTYPES)
+def test_values_componentwise(op: Op, backend: Backend, dtype: str) -> None:
+    """Eager torch runs a map's eager form (few vectorised operations, ``_core.EAGER_FORMS``) and the
+    compilers its componentwise form: both forms of every row against the oracle and its properties,
+    the componentwise one here run eagerly (``torch._custom.componentwise``) at every case, where the
+    compiled tests reach it at a few. One test per row and dtype (a test per case cost minutes of
+    pytest's own time); every failing case is named."""
+    from diffquat.torch._custom import componentwise
+
+    failures = []
+    for case in CASES:
+        if not op.applies(case):
+            continue
+        with componentwise():
+            received, out = run(op, backend, dtype, case)
+        try:
+            check_values(op, dtype, received, out)
+            check_properties(op, dtype, out)
+        except AssertionError as error:
+            failures.append(f"{case.name}: {error}")
+    assert not failures, "\n".join(failures)
 
 
 @only(dtype=lambda d: d in HALF_DTYPES)
@@ -401,3 +427,59 @@ def test_huge_finite_matrices_give_finite_results(op: Op, backend: Backend, dtyp
         with np.errstate(all="raise"):  # nothing may overflow in the reference
             expected = _core.matrix_to_quaternion(np, received.astype(np.longdouble)).astype(np.float64)
         assert max_error(out, expected, up_to_sign=True) <= VALUE_TOL[dtype]
+
+
+def _batched_args(op: Op, batch: tuple[int, ...]) -> tuple[list[np.ndarray], list[int]]:
+    """The op's float64 inputs at generic rotations of batch shape ``batch``, and the arguments that
+    carry that batch shape (the others, such as a time step shared by the batch, are left out)."""
+    xs = [np.asarray(x, np.float64) for x in op.inputs(uniform_quaternions(batch, seed=11))]
+    return xs, [i for i, x in enumerate(xs) if x.shape[: len(batch)] == batch]
+
+
+def _multi_argument(op: Op) -> bool:
+    return len(_batched_args(op, (5, 3))[1]) > 1
+
+
+@only(op=_multi_argument)
+def test_arguments_broadcast_pairwise(op: Op, backend: Backend) -> None:
+    """Every pair of batched arguments broadcasts as the conventions page promises: one of batch
+    shape (5, 1) and the other (3,) (the rest (1, 1)) give the result at the arguments broadcast
+    explicitly to (5, 3), to the last few bits (the same numbers, maybe summed in another order)."""
+    xs, batched = _batched_args(op, (5, 3))
+    failures = []
+    for i, j in itertools.combinations(batched, 2):
+        # the others of batch shape (1, 1): the pair alone decides the result's batch shape
+        args = [x[:1, :1] if k in batched else x for k, x in enumerate(xs)]
+        args[i], args[j] = xs[i][:, :1], xs[j][0]
+        explicit = [np.array(np.broadcast_to(x, xs[k].shape)) for k, x in enumerate(args)]
+        try:
+            out = backend.to_numpy(op(backend.module, *(backend.array(x, "float64") for x in args)))
+        except Exception as error:  # the report names every pair that fails
+            failures.append(f"arguments {i} (5, 1) and {j} (3,): {type(error).__name__}: {error}"[:300])
+            continue
+        expected = backend.to_numpy(op(backend.module, *(backend.array(x, "float64") for x in explicit)))
+        if out.shape != expected.shape or not np.allclose(out, expected, rtol=1e-13, atol=1e-13):
+            failures.append(f"arguments {i} and {j}: shape {out.shape}, expected {expected.shape}")
+    assert not failures, "\n".join(failures)
+
+
+@only(op=lambda op: bool(op.degenerate), dtype=lambda d: d in FULL_DTYPES)
+def test_degenerate_inputs(op: Op, backend: Backend, dtype: str) -> None:
+    """Each of the op's degenerate configurations (``Op.degenerate``: parallel and antiparallel
+    vectors, collinear points, extreme scales, zero translation, ...) within its bound in ulps of a
+    high-precision reference at the inputs as rounded to ``dtype``. One eager call for all of them
+    (each configuration is a batch of rows along one axis; rows are independent)."""
+    received = [
+        [host_cast(x, HOST_DTYPES[dtype]).astype(np.float64) for x in config.make(dtype)]
+        for config in op.degenerate
+    ]
+    together = [np.concatenate(xs) for xs in zip(*received, strict=True)]
+    out = backend.to_numpy(op(backend.module, *(backend.array(x, dtype) for x in together)))
+    failures, start = [], 0
+    for config, xs in zip(op.degenerate, received, strict=True):
+        rows = slice(start, start + len(xs[0]))
+        start = rows.stop
+        error = config.error(xs, out[rows], dtype) if np.all(np.isfinite(out[rows])) else np.inf
+        if not error <= config.ulps:
+            failures.append(f"{config.name}: {error:.3g} ulp > {config.ulps}")
+    assert not failures, "\n".join(failures)

@@ -7,6 +7,7 @@ not installed)."""
 from __future__ import annotations
 
 import functools
+import sys
 from typing import Any
 
 import jax
@@ -14,7 +15,7 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
-from .. import _algebra, _core, _euler, _igso3, _lie, _motion, _se3
+from .. import _algebra, _core, _euler, _igso3, _lie, _motion, _objects, _se3
 from .. import _fisher as _fi
 from .. import _representations as _rep
 from .. import _statistics as _stats
@@ -34,6 +35,8 @@ from ._custom import custom_derivative
 from ._namespace import XP
 
 __all__ = [
+    "SE3",
+    "SO3",
     "angular_acceleration",
     "angular_velocity",
     "angular_velocity_from_quaternions",
@@ -758,3 +761,55 @@ def se3_bspline(
 ) -> tuple[Array, Array, Array]:
     packed = _B(_motion.bound_se3_bspline, control, u, order=order, mode=mode, to_quaternion=_M2Q)
     return _motion.split_se3_bspline(_B.xp, packed)
+
+
+# SO3 and SE3 objects over the functions above (diffquat._objects, written once).
+
+
+def _float(dtype: Any) -> Any:
+    return jnp.dtype(jax.dtypes.canonicalize_dtype(jnp.float64) if dtype is None else dtype)
+
+
+def _identity(n: int, shape: int | tuple[int, ...] = (), *, dtype: Any = None) -> Array:
+    return jnp.broadcast_to(jnp.eye(n, dtype=_float(dtype)), (*shape_tuple(shape), n, n))
+
+
+def _draw(
+    module: Any, shape: int | tuple[int, ...] = (), *, key: Array, dtype: Any = None
+) -> tuple[Array, Array]:
+    rotation_key, translation_key = jax.random.split(key)
+    q = random_quaternions(shape, key=rotation_key, dtype=_float(dtype))
+    return q, jax.random.normal(translation_key, (*shape_tuple(shape), 3), dtype=_float(dtype))
+
+
+def _device(x: Any) -> Any:
+    # an abstract value (under jit, vmap, grad) has no device to tell
+    return None if isinstance(x, jax.core.Tracer) else getattr(x, "device", None)
+
+
+SO3, SE3 = _objects.bind(
+    sys.modules[__name__],
+    _objects.Native(
+        xp=jnp,
+        array=jax.Array,
+        identity=_identity,
+        draw=_draw,
+        device=_device,
+        astype=_B.astype,
+        match_rank=True,
+    ),
+)
+# Pytrees of one leaf, the stored array: through jit, vmap, grad, scan, optax and jax.export (whose
+# serialisation names them).
+for _cls in (SO3, SE3):
+    jax.tree_util.register_pytree_node(
+        _cls,
+        lambda obj: ((obj.matrix,), None),
+        functools.partial(lambda cls, aux, leaves: cls._wrap(leaves[0]), _cls),
+    )
+    jax.export.register_pytree_node_serialization(
+        _cls,
+        serialized_name=f"diffquat.jax.{_cls.__name__}",
+        serialize_auxdata=lambda aux: b"",
+        deserialize_auxdata=lambda data: None,
+    )

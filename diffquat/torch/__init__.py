@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import sys
 import warnings
 from typing import Any
 
@@ -12,7 +13,7 @@ import torch
 from torch import Tensor
 from torch.jit._trace import TracerWarning, is_tracing
 
-from .. import _algebra, _core, _euler, _igso3, _lie, _motion, _se3
+from .. import _algebra, _core, _euler, _igso3, _lie, _motion, _objects, _se3
 from .. import _fisher as _fi
 from .. import _representations as _rep
 from .. import _statistics as _stats
@@ -31,6 +32,8 @@ from .._types import (
 from ._custom import choose, custom_derivative, refuse_onnx
 
 __all__ = [
+    "SE3",
+    "SO3",
     "angular_acceleration",
     "angular_velocity",
     "angular_velocity_from_quaternions",
@@ -821,3 +824,47 @@ def se3_bspline(
 ) -> tuple[Tensor, Tensor, Tensor]:
     packed = _B(_motion.bound_se3_bspline, control, u, order=order, mode=mode, to_quaternion=_M2Q)
     return _motion.split_se3_bspline(_B.xp, packed)
+
+
+# SO3 and SE3 objects over the functions above (diffquat._objects, written once).
+
+
+def _identity(
+    n: int,
+    shape: int | tuple[int, ...] = (),
+    *,
+    dtype: torch.dtype | None = None,
+    device: torch.device | str | None = None,
+) -> Tensor:
+    eye = torch.eye(n, dtype=dtype or torch.get_default_dtype(), device=device)
+    return eye.expand(*shape_tuple(shape), n, n).clone()
+
+
+def _draw(
+    module: Any,
+    shape: int | tuple[int, ...] = (),
+    *,
+    generator: torch.Generator | None = None,
+    dtype: torch.dtype | None = None,
+    device: torch.device | str | None = None,
+) -> tuple[Tensor, Tensor]:
+    q = random_quaternions(shape, generator=generator, dtype=dtype, device=device)
+    t = torch.randn((*shape_tuple(shape), 3), generator=generator, dtype=q.dtype, device=q.device)
+    return q, t
+
+
+SO3, SE3 = _objects.bind(
+    sys.modules[__name__],
+    _objects.Native(
+        xp=torch, array=Tensor, identity=_identity, draw=_draw, device=lambda x: x.device, astype=_B.astype
+    ),
+)
+# torch's pytrees (torch.func's vmap and grad, torch.compile's inputs and outputs, torch.export): one
+# leaf, the stored tensor.
+for _cls in (SO3, SE3):
+    torch.utils._pytree.register_pytree_node(
+        _cls,
+        lambda obj: ([obj.matrix], None),
+        functools.partial(lambda cls, leaves, context: cls._wrap(leaves[0]), _cls),
+        serialized_type_name=f"diffquat.torch.{_cls.__name__}",
+    )
