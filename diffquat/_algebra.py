@@ -49,7 +49,8 @@ def match_rank(xp: Any, *arrays: Any) -> list[Any]:
     """Prepend unit axes so that every array has the same rank; broadcasting is then elementwise.
     Explicit, because jax (with rank promotion set to "raise") refuses to broadcast across ranks."""
     rank = max(a.ndim for a in arrays)
-    return [xp.reshape(a, (1,) * (rank - a.ndim) + tuple(a.shape)) for a in arrays]
+    # an array of the full rank as it is: a reshape to its own shape is an operation in eager torch
+    return [a if a.ndim == rank else xp.reshape(a, (1,) * (rank - a.ndim) + tuple(a.shape)) for a in arrays]
 
 
 def nonzero_or_identity(xp: Any, w: Any, x: Any, y: Any, z: Any) -> Components:
@@ -253,6 +254,7 @@ def quaternion_apply_eager(xp: Any, q: Any, v: Any, *, scalar_first: bool = True
     """:func:`quaternion_apply`, eager form: the same normalisation and the same formula
     ``v + 2 (w (u x v) + u x (u x v))``, its cross products as ``linalg.cross`` over the last axis
     (about fifteen operations where the componentwise form takes sixty)."""
+    q, v = match_rank(xp, q, v)  # linalg.cross broadcasts only arrays of one rank
     if not scalar_first:
         q = xp.roll(q, 1, -1)
     u = q * _inverse_norm(xp, q)
@@ -676,6 +678,7 @@ def matrix_geodesic_distance_eager(xp: Any, matrix1: Any, matrix2: Any) -> Any:
     ``linalg.cross``, one sum), and ``addcmul`` adds the non-finite rows' ``0 * trace``.
     ``linalg.vector_norm``'s derivative is 0 at the zero vector, as :func:`safe_norm`'s."""
     (zero,) = constants(xp, matrix1, _geodesic_constants)
+    matrix1, matrix2 = match_rank(xp, matrix1, matrix2)  # linalg.cross broadcasts only one rank
     # unit axes kept until the end: each reduction's backward is then one expand, without the views
     trace = (matrix1 * matrix2).sum((-2, -1), keepdim=True)
     axial = xp.linalg.cross(matrix2, matrix1, dim=-1).sum(-2, keepdim=True)
