@@ -12,6 +12,8 @@ from typing import Any
 from ._core import (
     Conversion,
     _negative_canonical,
+    _quadratic_forms,
+    cancelling_factor,
     computed_once,
     constants,
     eager_form,
@@ -21,6 +23,7 @@ from ._core import (
     op,
     split_quaternion,
     unit_quaternion_to_matrix,
+    zero_or_nan,
 )
 
 Components = tuple[Any, Any, Any, Any]
@@ -46,7 +49,8 @@ def match_rank(xp: Any, *arrays: Any) -> list[Any]:
     """Prepend unit axes so that every array has the same rank; broadcasting is then elementwise.
     Explicit, because jax (with rank promotion set to "raise") refuses to broadcast across ranks."""
     rank = max(a.ndim for a in arrays)
-    return [xp.reshape(a, (1,) * (rank - a.ndim) + tuple(a.shape)) for a in arrays]
+    # an array of the full rank as it is: a reshape to its own shape is an operation in eager torch
+    return [a if a.ndim == rank else xp.reshape(a, (1,) * (rank - a.ndim) + tuple(a.shape)) for a in arrays]
 
 
 def nonzero_or_identity(xp: Any, w: Any, x: Any, y: Any, z: Any) -> Components:
@@ -130,6 +134,19 @@ def quaternion_conjugate(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
     return join_quaternion(xp, w, -x, -y, -z, scalar_first)
 
 
+def _conjugate_signs() -> tuple[Any, ...]:
+    return [1.0, -1.0, -1.0, -1.0], [-1.0, -1.0, -1.0, 1.0]
+
+
+@eager_form(of=quaternion_conjugate)
+def quaternion_conjugate_eager(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
+    """:func:`quaternion_conjugate`, eager form: one product with the constant signs (negation is exact,
+    so the two forms agree bit for bit)."""
+    first, last = constants(xp, q, _conjugate_signs)
+    return q * (first if scalar_first else last)
+
+
+@nonfinite_by_arithmetic
 @op(q=(4,))
 def quaternion_invert(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
     """Multiplicative inverse ``conj(q) / |q|^2`` of a quaternion of any non-zero norm.
@@ -144,26 +161,45 @@ def quaternion_invert(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
         Shape ``(..., 4)``, norm ``1 / |q|``.
     """
     w, x, y, z = split_quaternion(q, scalar_first)
-    nonzero = w * w + x * x + y * y + z * z >= xp.finfo(q.dtype).tiny
+    # "below", not ">=" (false for NaN): a NaN row counts as non-zero, so that its NaN reaches every
+    # component through m (a NaN-propagating maximum) and n2, as an infinity does (inf * 0 in
+    # w * inv_m), and the backends add no selection after it (NONFINITE_BY_ARITHMETIC)
+    zero = w * w + x * x + y * y + z * z < xp.finfo(q.dtype).tiny
     # Scaled by m = max |q_i| first: the result grows as 1/|q|, so on a chain through n2 = |q|^2 the
     # derivative reaches |q|^-3 (1e45 at |q| = 1e-15, past float32). With p = q / m, |p|^2 lies in
     # [1, 4] and the largest intermediate derivative is 1/m^2. conj(q) / |q|^2 = conj(p) / (m |p|^2).
     # Double wheres: the discarded branch divides by 1, so everything stays finite at q = 0.
     m = xp.maximum(xp.maximum(xp.abs(w), xp.abs(x)), xp.maximum(xp.abs(y), xp.abs(z)))
-    inv_m = xp.where(nonzero, 1.0 / xp.where(nonzero, m, 1.0), 0.0)
+    inv_m = xp.where(zero, 0.0, 1.0 / xp.where(zero, 1.0, m))
     w, x, y, z = w * inv_m, x * inv_m, y * inv_m, z * inv_m
     n2 = w * w + x * x + y * y + z * z
-    s = xp.where(nonzero, inv_m / xp.where(nonzero, n2, 1.0), 0.0)
+    s = xp.where(zero, 0.0, inv_m / xp.where(zero, 1.0, n2))
     return join_quaternion(xp, w * s, -x * s, -y * s, -z * s, scalar_first)
-    n2 = w * w + x * x + y * y + z * z
-    nonzero = n2 >= xp.finfo(n2.dtype).tiny
-    # Through 1/|q| twice, not 1/|q|^2 once: d(1/n2)/dn2 = -1/n2^2 on the reverse chain overflows
-    # float32 for |q| below ~3e-10 (see quaternion_to_matrix). Double where: the discarded branch
-    # sees n2 = 1, so 1/sqrt and its derivative stay finite at 0.
-    inv = xp.where(nonzero, 1.0 / xp.sqrt(xp.where(nonzero, n2, 1.0)), 0.0)
-    return join_quaternion(
-        xp, (w * inv) * inv, -(x * inv) * inv, -(y * inv) * inv, -(z * inv) * inv, scalar_first
-    )
+
+
+def _invert_constants() -> tuple[Any, ...]:
+    # the conjugate's signs (scalar first), 1 and 0
+    return [1.0, -1.0, -1.0, -1.0], 1.0, 0.0
+
+
+@eager_form(of=quaternion_invert)
+def quaternion_invert_eager(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
+    """:func:`quaternion_invert`, eager form: the same scaling, ``conj(q) / |q|^2 = conj(u) / (m |u|^2)``
+    with ``u = q / m``, ``m = max |q_i|``, as few vectorised operations. ``m`` is a constant of
+    differentiation: for every fixed ``m`` the map ``q -> conj(q / m) / (m |q / m|^2)`` is
+    ``conj(q) / |q|^2`` itself, so its derivative is exact, and the largest intermediate derivative is
+    of size ``1 / m^2``. The zero quaternion (``m^2 |u|^2`` below the smallest normal number) gives 0; a
+    NaN or an infinity makes ``u`` and then every component NaN (the test is "below", false for NaN)."""
+    if not scalar_first:
+        q = xp.roll(q, 1, -1)
+    signs, one, zero = constants(xp, q, _invert_constants)
+    tiny = float(xp.finfo(q.dtype).tiny)
+    m = cancelling_factor(xp, xp.linalg.vector_norm(q, float("inf"), -1, True).clamp_min(tiny))
+    u = q / m
+    den = (u * u).sum(-1, keepdim=True) * m
+    small = den * m < tiny
+    out = xp.where(small, zero, (u * signs) / xp.where(small, one, den))
+    return out if scalar_first else xp.roll(out, -1, -1)
 
 
 @op(q=(4,), v=(3,))
@@ -193,6 +229,38 @@ def quaternion_apply(xp: Any, q: Any, v: Any, *, scalar_first: bool = True) -> A
     cx, cy, cz = y * vz - z * vy, z * vx - x * vz, x * vy - y * vx
     tx, ty, tz = w * cx + (y * cz - z * cy), w * cy + (z * cx - x * cz), w * cz + (x * cy - y * cx)
     return xp.stack([vx + s * tx, vy + s * ty, vz + s * tz], axis=-1)
+
+
+def _unit_constants() -> tuple[Any, ...]:
+    # 1 and 0 as arrays: a Python number in a ``where`` is an operation of its own (``scalar_tensor``)
+    # in eager torch; and the identity quaternion (scalar first)
+    return 1.0, 0.0, [1.0, 0.0, 0.0, 0.0]
+
+
+def _inverse_norm(xp: Any, q: Any) -> Any:
+    """``1 / |q|`` over the last axis, kept as a unit axis, 0 where the squared norm is below the
+    smallest normal number (the componentwise forms' zero quaternion); the double where keeps the
+    reciprocal square root and its derivative finite in the branch that is thrown away."""
+    one, zero, _ = constants(xp, q, _unit_constants)
+    n2 = (q * q).sum(-1, keepdim=True)
+    nonzero = n2 >= xp.finfo(q.dtype).tiny
+    # 1 / sqrt, not rsqrt: rsqrt's derivative is formed as its value cubed, |q|^-3, which overflows
+    # float32 from |q| ~ 1e-13 on, where 1 / sqrt's chain stays near |q|^-2
+    return xp.where(nonzero, 1.0 / xp.sqrt(xp.where(nonzero, n2, one)), zero)
+
+
+@eager_form(of=quaternion_apply)
+def quaternion_apply_eager(xp: Any, q: Any, v: Any, *, scalar_first: bool = True) -> Any:
+    """:func:`quaternion_apply`, eager form: the same normalisation and the same formula
+    ``v + 2 (w (u x v) + u x (u x v))``, its cross products as ``linalg.cross`` over the last axis
+    (about fifteen operations where the componentwise form takes sixty)."""
+    q, v = match_rank(xp, q, v)  # linalg.cross broadcasts only arrays of one rank
+    if not scalar_first:
+        q = xp.roll(q, 1, -1)
+    u = q * _inverse_norm(xp, q)
+    w, axis = u[..., :1], u[..., 1:]
+    c = xp.linalg.cross(axis, v, dim=-1)
+    return xp.add(v, w * c + xp.linalg.cross(axis, c, dim=-1), alpha=2.0)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -247,6 +315,40 @@ def exp_factors(xp: Any, t2: Any) -> tuple[Any, Any]:
     return w, k
 
 
+def _exp_constants() -> tuple[Any, ...]:
+    # EXP_SERIES' coefficients as arrays (torch.add/addcmul take an array for the constant term), 1, 0,
+    # and the coefficients of the nine entries of R(u) = P(u) for a unit u (_core._quadratic_forms)
+    (w0, w1, _), (k0, k1, _) = EXP_SERIES
+    return w0, w1, k0, k1, 1.0, 0.0, [row[:9] for row in _quadratic_forms()]
+
+
+def _exp_eager(xp: Any, v: Any) -> Any:
+    """:func:`axis_angle_to_quaternion` of ``(..., 3)`` rotation vectors, scalar first, in eighteen
+    operations: :func:`exp_factors` with its two factors' series in Horner's form and ``k v`` as one
+    broadcast product."""
+    w0, w1, k0, k1, one, zero, _ = constants(xp, v, _exp_constants)
+    (_, _, w2), (_, _, k2) = EXP_SERIES
+    t2 = (v * v).sum(-1, keepdim=True)
+    small = t2 < series_threshold(xp, t2.dtype)
+    # double where: the closed forms see a safe angle in the branch thrown away (sin(0) / 0 there
+    # would make the derivative NaN though the where discards its value)
+    angle = xp.sqrt(xp.where(small, one, t2))
+    half = 0.5 * angle
+    # the series sees 0 where it is not used (no overflow of t2^2); Horner's form
+    u = xp.where(small, t2, zero)
+    w = xp.where(small, xp.addcmul(w0, u, xp.add(w1, u, alpha=w2)), xp.cos(half))
+    k = xp.where(small, xp.addcmul(k0, u, xp.add(k1, u, alpha=k2)), xp.sin(half) / angle)
+    return xp.cat([w, k * v], -1)
+
+
+@eager_form(of=axis_angle_to_quaternion)
+def axis_angle_to_quaternion_eager(xp: Any, axis_angle: Any, *, scalar_first: bool = True) -> Any:
+    """:func:`axis_angle_to_quaternion`, eager form (:func:`_exp_eager`). A NaN or an infinity reaches
+    every component through the angle and the sum of squares, as in the componentwise form."""
+    q = _exp_eager(xp, axis_angle)
+    return q if scalar_first else xp.roll(q, -1, -1)
+
+
 def _canonical_components(xp: Any, q: Any, scalar_first: bool) -> Components:
     """Components of ``q`` (zero -> identity) in canonical sign (w > 0; where w = 0 the first non-zero
     of x, y, z positive), so that the angle ``2 atan2(|xyz|, w)`` is in [0, pi] and ``q``, ``-q`` agree."""
@@ -289,6 +391,49 @@ def quaternion_to_axis_angle(xp: Any, q: Any, *, scalar_first: bool = True) -> A
     return k[..., None] * xp.stack([x, y, z], axis=-1)
 
 
+def _log_constants() -> tuple[Any, ...]:
+    # the identity quaternion; the weights of the canonical sign (the first non-zero component
+    # decides: 8, 4, 2, 1 from w to z, as _core.matrix_to_quaternion_eager); 1, 0; the series' 1/6
+    return [1.0, 0.0, 0.0, 0.0], [[8.0], [4.0], [2.0], [1.0]], 1.0, 0.0, 1 / 6
+
+
+def _log_eager(xp: Any, q: Any, unit_canonical: bool = False) -> tuple[Any, Any]:
+    """:func:`quaternion_to_axis_angle` of ``(..., 4)`` scalar-first quaternions, vectorised, and their
+    norms (``(..., 1)``, for the non-finite rows). Unless ``unit_canonical`` (``matrix_to_quaternion``'s
+    result is unit and in canonical sign already): the zero quaternion is the identity, ``q`` is
+    divided by its norm, and its sign made canonical, ``sgn(sgn(q) . (8, 4, 2, 1))`` (the first
+    non-zero component's: each weight exceeds the sum of those after it).
+
+    On the unit sphere ``2 atan2(s, w) / s`` (``s = |xyz|``) is ``2 asin(s) / s``, whose Taylor series
+    in ``u = s^2``, ``2 (1 + u / 6 + 3 u^2 / 40)`` (first term dropped ``5 u^3 / 112``), is used below
+    :func:`series_threshold`, as the componentwise form's series in ``s^2 / w^2``: one variable, no
+    division."""
+    identity, weights, one, zero, sixth = constants(xp, q, _log_constants)
+    norm = None
+    if not unit_canonical:
+        q, norm, zero = _nonzero_or_identity_eager(xp, q, identity)
+        q = q / xp.where(zero, one, norm)
+        # the sign is piecewise constant: a constant of differentiation (its zero derivative would
+        # otherwise cost a backward pass through the product with the weights)
+        q = q * xp.sgn(xp.sgn(cancelling_factor(xp, q)) @ weights)
+    w, v = q[..., :1], q[..., 1:]
+    u = (v * v).sum(-1, keepdim=True)
+    small = u < series_threshold(xp, u.dtype)
+    # double wheres: the series sees u = 0 where it is not used, atan2 / s sees s = 1
+    us = xp.where(small, u, zero)
+    series = xp.addcmul(one, us, xp.add(sixth, us, alpha=3 / 40))
+    s = xp.sqrt(xp.where(small, one, u))
+    return 2.0 * (xp.where(small, series, xp.atan2(s, w) / s) * v), norm
+
+
+@eager_form(of=quaternion_to_axis_angle)
+def quaternion_to_axis_angle_eager(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
+    """:func:`quaternion_to_axis_angle`, eager form (:func:`_log_eager`). The backend's rule makes the
+    non-finite rows NaN (``_backend.nonfinite_rows``), as after the componentwise form, which the
+    composites (slerp, the splines, IGSO(3)) call without it."""
+    return _log_eager(xp, q if scalar_first else xp.roll(q, 1, -1))[0]
+
+
 # As so3_exp, the same map: every entry reads a component of the quaternion, NaN in a non-finite row.
 @nonfinite_by_arithmetic
 @op(axis_angle=(3,))
@@ -317,10 +462,38 @@ def matrix_to_axis_angle(xp: Any, matrix: Any, *, to_quaternion: Conversion = ma
     return quaternion_to_axis_angle(xp, to_quaternion(xp, matrix))
 
 
+def _matrix_of_unit_eager(xp: Any, q: Any) -> Any:
+    """The rotation matrix ``(..., 3, 3)`` of scalar-first unit quaternions: the outer product ``q q^T``
+    contracted with the constant coefficients of the nine entries (``_core._quadratic_forms``), which
+    for ``|q| = 1`` are the entries of ``R(q)`` (as :func:`unit_quaternion_to_matrix`)."""
+    *_, forms = constants(xp, q, _exp_constants)
+    r = xp.matmul((q[..., :, None] * q[..., None, :]).flatten(-2), forms)
+    return r.unflatten(-1, (3, 3))
+
+
+@eager_form(of=axis_angle_to_matrix)
+def axis_angle_to_matrix_eager(
+    xp: Any, axis_angle: Any, *, to_matrix: Conversion = unit_quaternion_to_matrix
+) -> Any:
+    """:func:`axis_angle_to_matrix`, eager form: :func:`_exp_eager`, then :func:`_matrix_of_unit_eager`;
+    every entry reads every component of the quaternion, NaN in a non-finite row."""
+    return _matrix_of_unit_eager(xp, _exp_eager(xp, axis_angle))
+
+
+@eager_form(of=matrix_to_axis_angle)
+def matrix_to_axis_angle_eager(
+    xp: Any, matrix: Any, *, to_quaternion: Conversion = matrix_to_quaternion
+) -> Any:
+    """:func:`matrix_to_axis_angle`, eager form: the registered conversion (its own eager form), then
+    :func:`_log_eager`; a non-finite row's quaternion is NaN throughout, and so is its vector."""
+    return _log_eager(xp, to_quaternion(xp, matrix), unit_canonical=True)[0]
+
+
 # ---------------------------------------------------------------------------------------------------
 # Interpolation and distances.
 
 
+@nonfinite_by_arithmetic
 @op(p=(4,), q=(4,), t=())
 def quaternion_slerp(xp: Any, p: Any, q: Any, t: Any, *, scalar_first: bool = True) -> Any:
     """Spherical linear interpolation from ``p`` (t = 0) to ``q`` (t = 1) along the shortest arc.
@@ -353,6 +526,55 @@ def quaternion_slerp(xp: Any, p: Any, q: Any, t: Any, *, scalar_first: bool = Tr
     return join_quaternion(xp, *hamilton(p_unit, split_quaternion(step, True)), scalar_first)
 
 
+def _slerp_constants() -> tuple[Any, ...]:
+    # the coefficients of p* q (_conjugate_hamilton_forms), the identity quaternion, 1 and 0
+    c, identity, zero = _conjugate_hamilton_forms()
+    return c, identity, 1.0, zero
+
+
+@eager_form(of=quaternion_slerp)
+def quaternion_slerp_eager(xp: Any, p: Any, q: Any, t: Any, *, scalar_first: bool = True) -> Any:
+    """:func:`quaternion_slerp`, eager form: the same map, ``p exp(t log(p* q))``, written as Shoemake's
+    ``(cos(t phi) - k cos(phi)) p + k q'`` with ``k = sin(t phi) / sin(phi)`` (Shoemake 1985, "Animating
+    rotation with quaternion curves", SIGGRAPH), where ``p``, ``q'`` are the unit quaternions, ``q'``
+    signed so that ``r = p* q'`` has ``w >= 0`` (the shorter arc) and ``phi = atan2(|r_xyz|, r_w)``:
+    ``p (0, r_xyz) = q' - r_w p``, so the second product of the componentwise form is not formed.
+
+    Near ``p = +-q`` (``u = sin(phi)^2`` below :func:`series_threshold`) both factors are series in
+    ``u``, so that the value and its derivatives of every order are exact there: ``cos(t phi) = 1 -
+    (t^2 / 2) u + O(u^2)`` and ``k = t (1 - (t^2 - 1) u / 6 + O(u^2))``. Two terms: the first term
+    dropped is ``t^2 (t^2 - 4) u^2 / 24`` and ``t (t^2 - 1) (t^2 - 9) u^2 / 120``, below ``0.1 eps`` at
+    the threshold ``u = sqrt(eps)`` for ``t`` in [0, 1]. The zero quaternion is the identity (squared
+    norm below the smallest normal number, as the componentwise form). A NaN or an infinity in ``p``,
+    ``q`` or ``t`` reaches every component: each component of ``r`` reads all of ``p`` and ``q``, and
+    ``t`` enters both factors (NONFINITE_BY_ARITHMETIC)."""
+    if not scalar_first:
+        p, q = xp.roll(p, 1, -1), xp.roll(q, 1, -1)
+    c, identity, one, zero = constants(xp, p, _slerp_constants)
+    p, norm, zero = _nonzero_or_identity_eager(xp, p, identity)
+    p = p / xp.where(zero, one, norm)
+    q, norm, zero = _nonzero_or_identity_eager(xp, q, identity)
+    q = q / xp.where(zero, one, norm)
+    r = xp.matmul((p[..., :, None] * q[..., None, :]).flatten(-2), c)
+    # the shorter arc: q' = sign(r_w) q, a constant of differentiation (piecewise constant)
+    sign = xp.copysign(one, cancelling_factor(xp, r[..., :1]))
+    r = r * sign
+    cos_phi, axis = r[..., :1], r[..., 1:]
+    u = (axis * axis).sum(-1, keepdim=True)
+    small = u < series_threshold(xp, u.dtype)
+    # double where: the closed forms see sin(phi) = 1 in the branch thrown away, the series u = 0
+    sin_phi = xp.sqrt(xp.where(small, one, u))
+    t = t[..., None]
+    t_phi = t * xp.atan2(sin_phi, cos_phi)
+    u = xp.where(small, u, zero)
+    t2 = t * t
+    k = xp.where(small, t * xp.addcmul(one, t2 - 1.0, u, value=-1 / 6), xp.sin(t_phi) / sin_phi)
+    cos_t_phi = xp.where(small, xp.addcmul(one, t2, u, value=-0.5), xp.cos(t_phi))
+    out = xp.addcmul(xp.addcmul(cos_t_phi, k, cos_phi, value=-1.0) * p, k * sign, q)
+    return out if scalar_first else xp.roll(out, -1, -1)
+
+
+@nonfinite_by_arithmetic
 @op(p=(4,), q=(4,))
 def quaternion_geodesic_distance(xp: Any, p: Any, q: Any, *, scalar_first: bool = True) -> Any:
     """Angle of the rotation between ``p`` and ``q``, in [0, pi], blind to the sign of either.
@@ -371,9 +593,51 @@ def quaternion_geodesic_distance(xp: Any, p: Any, q: Any, *, scalar_first: bool 
     rw, rx, ry, rz = hamilton(
         (pw, -px, -py, -pz), nonzero_or_identity(xp, *split_quaternion(q, scalar_first))
     )
-    return 2.0 * xp.atan2(safe_norm(xp, rx * rx + ry * ry + rz * rz), xp.abs(rw))
+    angle = 2.0 * xp.atan2(safe_norm(xp, rx * rx + ry * ry + rz * rz), xp.abs(rw))
+    # The non-finite rows (NONFINITE_BY_ARITHMETIC): NaN where p or q holds a NaN or an infinity, the
+    # sum of 0 * p (_backend.nonfinite_rows' arithmetic, written here so that the eager form can
+    # take it from the norms it computes anyway).
+    bad = zero_or_nan(xp, cancelling_factor(xp, p), 1) + zero_or_nan(xp, cancelling_factor(xp, q), 1)
+    return angle + bad
 
 
+def _conjugate_hamilton_forms() -> tuple[Any, ...]:
+    """(16, 4): the coefficients of ``p_i q_j`` in ``p* q`` (:func:`_hamilton_forms` with the rows of
+    ``p``'s vector part negated), the identity quaternion and 0."""
+    (c,) = _hamilton_forms()
+    return [[-v if i // 4 else v for v in row] for i, row in enumerate(c)], [1.0, 0.0, 0.0, 0.0], 0.0
+
+
+def _nonzero_or_identity_eager(xp: Any, q: Any, identity: Any) -> tuple[Any, Any, Any]:
+    """:func:`nonzero_or_identity` of ``(..., 4)`` scalar-first quaternions in three operations, their
+    norm and the mask of the zero ones (``|q| < 2^-63`` in float32 is ``|q|^2`` below the smallest
+    normal number, 2^-126, the square root being exact at a power of 4)."""
+    norm = xp.linalg.vector_norm(q, 2, -1, True)
+    zero = norm < float(xp.finfo(q.dtype).tiny) ** 0.5
+    return xp.where(zero, identity, q), norm, zero
+
+
+@eager_form(of=quaternion_geodesic_distance)
+def quaternion_geodesic_distance_eager(xp: Any, p: Any, q: Any, *, scalar_first: bool = True) -> Any:
+    """:func:`quaternion_geodesic_distance`, eager form: ``r = p* q`` as one contraction of the outer
+    product with constant coefficients (as :func:`quaternion_multiply_eager`), then ``2 atan2(|r_xyz|,
+    |r_w|)``; ``linalg.vector_norm``'s derivative is 0 at the zero vector (the distance's kink, where the
+    componentwise form's :func:`safe_norm` gives 0 too)."""
+    if not scalar_first:
+        p, q = xp.roll(p, 1, -1), xp.roll(q, 1, -1)
+    c, identity, zero = constants(xp, p, _conjugate_hamilton_forms)
+    p, p_norm, _ = _nonzero_or_identity_eager(xp, p, identity)
+    q, q_norm, _ = _nonzero_or_identity_eager(xp, q, identity)
+    r = xp.matmul((p[..., :, None] * q[..., None, :]).flatten(-2), c)
+    angle = 2.0 * xp.atan2(xp.linalg.vector_norm(r[..., 1:], 2, -1, True), xp.abs(r[..., :1]))
+    # the non-finite rows: 0 * |p| is NaN exactly where p holds a NaN or an infinity
+    angle = xp.addcmul(
+        xp.addcmul(angle, cancelling_factor(xp, p_norm), zero), cancelling_factor(xp, q_norm), zero
+    )
+    return angle.view(angle.shape[:-1])
+
+
+@nonfinite_by_arithmetic
 @op(matrix1=(3, 3), matrix2=(3, 3))
 def matrix_geodesic_distance(xp: Any, matrix1: Any, matrix2: Any) -> Any:
     """Angle of the rotation ``matrix1^T matrix2`` between two rotation matrices, in [0, pi].
@@ -394,6 +658,30 @@ def matrix_geodesic_distance(xp: Any, matrix1: Any, matrix2: Any) -> Any:
     def m(i: int, j: int) -> Any:
         return a[..., 0, i] * b[..., 0, j] + a[..., 1, i] * b[..., 1, j] + a[..., 2, i] * b[..., 2, j]
 
-    cos2 = m(0, 0) + m(1, 1) + m(2, 2) - 1.0  # 2 cos(angle)
+    trace = m(0, 0) + m(1, 1) + m(2, 2)
+    # 2 cos(angle). The trace sums the products of all 18 entries, so a NaN or an infinity in either
+    # matrix makes it NaN or infinite, and 0 * trace (constant of differentiation) NaN: the whole row
+    # is NaN by this arithmetic (NONFINITE_BY_ARITHMETIC), not by a selection after it.
+    cos2 = trace - 1.0 + 0.0 * cancelling_factor(xp, trace)
     sx, sy, sz = m(2, 1) - m(1, 2), m(0, 2) - m(2, 0), m(1, 0) - m(0, 1)  # 2 sin(angle) axis
     return xp.atan2(safe_norm(xp, sx * sx + sy * sy + sz * sz), cos2)
+
+
+def _geodesic_constants() -> tuple[Any, ...]:
+    return (0.0,)
+
+
+@eager_form(of=matrix_geodesic_distance)
+def matrix_geodesic_distance_eager(xp: Any, matrix1: Any, matrix2: Any) -> Any:
+    """:func:`matrix_geodesic_distance`, eager form, in nine operations: ``trace(a^T b)`` is the sum of
+    the entrywise product, ``axial(M - M^T) = sum_k b_k x a_k`` over the rows ``a_k``, ``b_k`` (one
+    ``linalg.cross``, one sum), and ``addcmul`` adds the non-finite rows' ``0 * trace``.
+    ``linalg.vector_norm``'s derivative is 0 at the zero vector, as :func:`safe_norm`'s."""
+    (zero,) = constants(xp, matrix1, _geodesic_constants)
+    matrix1, matrix2 = match_rank(xp, matrix1, matrix2)  # linalg.cross broadcasts only one rank
+    # unit axes kept until the end: each reduction's backward is then one expand, without the views
+    trace = (matrix1 * matrix2).sum((-2, -1), keepdim=True)
+    axial = xp.linalg.cross(matrix2, matrix1, dim=-1).sum(-2, keepdim=True)
+    cos2 = xp.addcmul(trace - 1.0, cancelling_factor(xp, trace), zero)
+    angle = xp.atan2(xp.linalg.vector_norm(axial, 2, -1, True), cos2)
+    return angle.view(angle.shape[:-2])

@@ -600,6 +600,54 @@ def xyzw_to_wxyz(xp: Any, q: Any) -> Any:
     return xp.stack([q[..., 3], q[..., 0], q[..., 1], q[..., 2]], axis=-1)
 
 
+# Eager forms of the reorderings, standardisation and normalisation (see "Eager forms" below): the
+# same values bit for bit (a roll moves the very numbers; a product with +-1 is exact).
+
+
+def wxyz_to_xyzw_eager(xp: Any, q: Any) -> Any:
+    """:func:`wxyz_to_xyzw`, eager form: one ``roll``."""
+    return xp.roll(q, -1, -1)
+
+
+def xyzw_to_wxyz_eager(xp: Any, q: Any) -> Any:
+    """:func:`xyzw_to_wxyz`, eager form: one ``roll``."""
+    return xp.roll(q, 1, -1)
+
+
+def _sign_weights() -> tuple[Any, ...]:
+    # the first non-zero component decides the canonical sign: weights 8, 4, 2, 1 from w to z (each
+    # exceeds the sum of those after it), in either storage order; and 1
+    return [[8.0], [4.0], [2.0], [1.0]], [[4.0], [2.0], [1.0], [8.0]], 1.0
+
+
+def standardize_quaternion_eager(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
+    """:func:`standardize_quaternion`, eager form: ``q`` times the sign of ``sgn(q) . (8, 4, 2, 1)``
+    (``copysign(1, .)``: +1 for the zero quaternion, whose sum is +0, as the componentwise form keeps
+    it), a constant of differentiation, so the gradient is +-1 times the identity as there."""
+    first, last, one = constants(xp, q, _sign_weights)
+    signs = xp.sgn(cancelling_factor(xp, q)) @ (first if scalar_first else last)
+    return q * xp.copysign(one, signs)
+
+
+def _normalize_constants() -> tuple[Any, ...]:
+    return [1.0, 0.0, 0.0, 0.0], 1.0
+
+
+def normalize_quaternion_eager(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
+    """:func:`normalize_quaternion`, eager form, in five operations: ``q / |q|`` with the norm from
+    ``linalg.vector_norm`` and the zero quaternion (``|q| < sqrt(tiny)``, i.e. squared norm below the
+    smallest normal number: the square root of a power of 4 is exact) the identity. The backend's
+    rule makes the non-finite rows NaN, as after the componentwise form, which composites (the
+    splines, the quaternion mean) call without it."""
+    if not scalar_first:
+        q = xp.roll(q, 1, -1)
+    identity, one = constants(xp, q, _normalize_constants)
+    norm = xp.linalg.vector_norm(q, 2, -1, True)
+    small = norm < float(xp.finfo(q.dtype).tiny) ** 0.5
+    out = xp.where(small, identity, q / xp.where(small, one, norm))
+    return out if scalar_first else xp.roll(out, -1, -1)
+
+
 @canonical
 @op(uniform=(3,))
 def quaternions_from_uniform(xp: Any, uniform: Any, *, scalar_first: bool = True) -> Any:
@@ -704,14 +752,24 @@ def eager_form(of: Callable[..., Any]) -> Callable[[F], F]:
     return register
 
 
+# the eager forms written beside their componentwise functions, above this registry
+for _of, _form in (
+    (wxyz_to_xyzw, wxyz_to_xyzw_eager),
+    (xyzw_to_wxyz, xyzw_to_wxyz_eager),
+    (standardize_quaternion, standardize_quaternion_eager),
+    (normalize_quaternion, normalize_quaternion_eager),
+):
+    eager_form(of=_of)(_form)
+
+
 _CONSTANTS: dict[tuple[Any, ...], Any] = {}
 
 
-def constants(xp: Any, like: Any, make: Callable[[], tuple[list[Any], ...]]) -> tuple[Any, ...]:
-    """The constant arrays ``make()`` (nested lists) in ``like``'s dtype and device, made once per map,
-    dtype and device: making one on every call is an operation (a host-to-device copy on a GPU), and
-    a map's forward makes all of them, those its rules read included, so that no backward pass makes
-    one either."""
+def constants(xp: Any, like: Any, make: Callable[[], tuple[Any, ...]]) -> tuple[Any, ...]:
+    """The constant arrays ``make()`` (nested lists, or numbers: 0-d arrays) in ``like``'s dtype and
+    device, made once per map, dtype and device: making one on every call is an operation (a
+    host-to-device copy on a GPU), and a map's forward makes all of them, those its rules read
+    included, so that no backward pass makes one either."""
     key = (make, like.dtype, like.device)
     value = _CONSTANTS.get(key)
     if value is None:

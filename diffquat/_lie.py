@@ -40,17 +40,25 @@ import math
 from typing import Any
 
 from ._algebra import (
+    _exp_eager,
+    _hamilton_forms,
+    _log_eager,
+    _nonzero_or_identity_eager,
     axis_angle_to_matrix,
+    axis_angle_to_matrix_eager,
     axis_angle_to_quaternion,
     exp_factors,
     match_rank,
     matrix_to_axis_angle,
+    matrix_to_axis_angle_eager,
     quaternion_to_axis_angle,
 )
 from ._core import (
     Conversion,
     cancelling_factor,
     computed_once,
+    constants,
+    eager_form,
     matrix_to_quaternion,
     nonfinite_by_arithmetic,
     op,
@@ -93,6 +101,25 @@ def so3_hat(xp: Any, omega: Any) -> Any:
     return stack_matrix(xp, [zero, -z, y, z, zero, -x, -y, x, zero])
 
 
+def _hat_forms() -> tuple[Any, ...]:
+    """(3, 9): the coefficients of ``(w_x, w_y, w_z)`` in the nine entries of ``hat(w)`` (row-major);
+    (9, 3): those of the entries ``M_ij`` in ``vee(M)``, halves."""
+    hat = [[0.0] * 9 for _ in range(3)]
+    vee = [[0.0] * 3 for _ in range(9)]
+    for k, (i, j) in enumerate(((2, 1), (0, 2), (1, 0))):  # w_k sits at (i, j) and -w_k at (j, i)
+        hat[k][3 * i + j], hat[k][3 * j + i] = 1.0, -1.0
+        vee[3 * i + j][k], vee[3 * j + i][k] = 0.5, -0.5
+    return hat, vee
+
+
+@eager_form(of=so3_hat)
+def so3_hat_eager(xp: Any, omega: Any) -> Any:
+    """:func:`so3_hat`, eager form: one product with constant coefficients (``w_k * 1 + 0 * ...``, the
+    same numbers)."""
+    hat, _ = constants(xp, omega, _hat_forms)
+    return xp.matmul(omega, hat).unflatten(-1, (3, 3))
+
+
 @op(matrix=(3, 3))
 def so3_vee(xp: Any, matrix: Any) -> Any:
     """The vector of the skew part of a matrix: ``vee((M - M^T) / 2)``, the inverse of ``so3_hat``.
@@ -112,6 +139,14 @@ def so3_vee(xp: Any, matrix: Any) -> Any:
         ],
         axis=-1,
     )
+
+
+@eager_form(of=so3_vee)
+def so3_vee_eager(xp: Any, matrix: Any) -> Any:
+    """:func:`so3_vee`, eager form: the entries times constant halves, one product (``0.5 a - 0.5 b`` is
+    ``0.5 (a - b)`` to the last bit: halving is exact)."""
+    _, vee = constants(xp, matrix, _hat_forms)
+    return xp.matmul(matrix.flatten(-2), vee)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -142,6 +177,18 @@ def so3_log(xp: Any, matrix: Any, *, to_quaternion: Conversion = matrix_to_quate
     canonical quaternion: log jumps to the antipode there, as every logarithm must; its gradient stays
     finite."""
     return matrix_to_axis_angle(xp, matrix, to_quaternion=to_quaternion)
+
+
+@eager_form(of=so3_exp)
+def so3_exp_eager(xp: Any, omega: Any, *, to_matrix: Conversion = unit_quaternion_to_matrix) -> Any:
+    """:func:`so3_exp`, eager form: ``axis_angle_to_matrix``'s."""
+    return axis_angle_to_matrix_eager(xp, omega)
+
+
+@eager_form(of=so3_log)
+def so3_log_eager(xp: Any, matrix: Any, *, to_quaternion: Conversion = matrix_to_quaternion) -> Any:
+    """:func:`so3_log`, eager form: ``matrix_to_axis_angle``'s."""
+    return matrix_to_axis_angle_eager(xp, matrix, to_quaternion=to_quaternion)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -513,3 +560,76 @@ def quaternion_minus(xp: Any, q1: Any, q2: Any, *, side: str = "right", scalar_f
     inverse = (w, -v)
     relative = _product(inverse, p1, xp) if right else _product(p1, inverse, xp)
     return quaternion_to_axis_angle(xp, _join(xp, *relative, True))
+
+
+def _plus_constants() -> tuple[Any, ...]:
+    """The coefficients of ``p_i q_j`` (row ``4 i + j``) in ``p q``, ``p* q`` and ``p q*`` (scalar
+    first), and the identity quaternion and 1."""
+    (c,) = _hamilton_forms()
+    first = [[-x if i // 4 else x for x in row] for i, row in enumerate(c)]
+    second = [[-x if i % 4 else x for x in row] for i, row in enumerate(c)]
+    return c, first, second, [1.0, 0.0, 0.0, 0.0], 1.0
+
+
+def _unit_eager(xp: Any, q: Any, identity: Any, one: Any) -> Any:
+    """``(..., 4)`` scalar-first quaternions over their norm, the zero quaternion (``|q| < sqrt(tiny)``:
+    squared norm below the smallest normal number, as :func:`_unit`) the identity."""
+    q, norm, zero = _nonzero_or_identity_eager(xp, q, identity)
+    return q / xp.where(zero, one, norm)
+
+
+def _outer(xp: Any, p: Any, q: Any, forms: Any) -> Any:
+    """A bilinear map of two ``(..., 4)`` arrays: their outer product contracted with ``forms``."""
+    return xp.matmul((p[..., :, None] * q[..., None, :]).flatten(-2), forms)
+
+
+@eager_form(of=quaternion_plus)
+def quaternion_plus_eager(
+    xp: Any, q: Any, delta: Any, *, side: str = "right", scalar_first: bool = True
+) -> Any:
+    """:func:`quaternion_plus`, eager form: the unit quaternion (:func:`_unit_eager`), the step's
+    (``axis_angle_to_quaternion``'s eager form) and their product by constant coefficients. A NaN or
+    an infinity in ``q`` makes its norm, and with it the whole unit quaternion, NaN, or one component
+    of it, which every component of the product reads; one in ``delta`` makes the whole step NaN."""
+    right = check_side("quaternion_plus", side)
+    if not scalar_first:
+        q = xp.roll(q, 1, -1)
+    c, _, _, identity, one = constants(xp, q, _plus_constants)
+    unit = _unit_eager(xp, q, identity, one)
+    step = _exp_eager(xp, delta)
+    out = _outer(xp, unit, step, c) if right else _outer(xp, step, unit, c)
+    return out if scalar_first else xp.roll(out, -1, -1)
+
+
+@eager_form(of=quaternion_minus)
+def quaternion_minus_eager(
+    xp: Any, q1: Any, q2: Any, *, side: str = "right", scalar_first: bool = True
+) -> Any:
+    """:func:`quaternion_minus`, eager form: both unit (:func:`_unit_eager`, so that the product of any
+    two norms in range neither overflows nor underflows), ``q2* q1`` (right) or ``q1 q2*`` (left) by
+    constant coefficients, then
+    ``quaternion_to_axis_angle``'s eager form. A NaN or an infinity in either reaches every component
+    of the product (see :func:`quaternion_plus_eager`), and from there every component of the log."""
+    right = check_side("quaternion_minus", side)
+    if not scalar_first:
+        q1, q2 = xp.roll(q1, 1, -1), xp.roll(q2, 1, -1)
+    _, first, second, identity, one = constants(xp, q1, _plus_constants)
+    a, b = _unit_eager(xp, q1, identity, one), _unit_eager(xp, q2, identity, one)
+    return _log_eager(xp, _outer(xp, b, a, first) if right else _outer(xp, a, b, second))[0]
+
+
+@eager_form(of=so3_minus)
+def so3_minus_eager(
+    xp: Any,
+    matrix1: Any,
+    matrix2: Any,
+    *,
+    side: str = "right",
+    to_quaternion: Conversion = matrix_to_quaternion,
+) -> Any:
+    """:func:`so3_minus`, eager form: the relative rotation as one ``matmul``, then
+    ``matrix_to_axis_angle``'s eager form."""
+    right = check_side("so3_minus", side)
+    a, b = matrix1, matrix2
+    relative = xp.matmul(b.mT, a) if right else xp.matmul(a, b.mT)
+    return matrix_to_axis_angle_eager(xp, relative, to_quaternion=to_quaternion)

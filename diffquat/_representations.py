@@ -15,13 +15,18 @@ from collections.abc import Callable
 from typing import Any
 
 from ._core import (
+    cancelling_factor,
     canonical,
+    constants,
+    eager_form,
     join_quaternion,
+    nonfinite_by_arithmetic,
     op,
     range_divisor,
     split_quaternion,
     stack_matrix,
     standardize_quaternion,
+    zero_or_nan,
 )
 
 # ---------------------------------------------------------------------------------------------------
@@ -116,6 +121,7 @@ def rotation_6d_to_matrix(xp: Any, d6: Any, *, layout: str = "columns") -> Any:
     return xp.stack([b1, b2, b3], axis=axis)
 
 
+@nonfinite_by_arithmetic
 @op(matrix=(3, 3))
 def matrix_to_rotation_6d(xp: Any, matrix: Any, *, layout: str = "columns") -> Any:
     """The 6D representation of Zhou et al. (CVPR 2019): the first two columns (or rows) of the matrix.
@@ -131,8 +137,27 @@ def matrix_to_rotation_6d(xp: Any, matrix: Any, *, layout: str = "columns") -> A
         rotation matrix, ``rotation_6d_to_matrix`` of the result in the same layout gives it back.
     """
     if _layout_axis("matrix_to_rotation_6d", layout) == -1:
-        return xp.concat([matrix[..., :, 0], matrix[..., :, 1]], axis=-1)
-    return xp.concat([matrix[..., 0, :], matrix[..., 1, :]], axis=-1)
+        out = xp.concat([matrix[..., :, 0], matrix[..., :, 1]], axis=-1)
+    else:
+        out = xp.concat([matrix[..., 0, :], matrix[..., 1, :]], axis=-1)
+    # The non-finite rows (NONFINITE_BY_ARITHMETIC): _backend.nonfinite_rows' sum of 0 * matrix (the
+    # third column or row is not read), written here so that the eager form shares its flattening.
+    return out + zero_or_nan(xp, cancelling_factor(xp, matrix), 2)[..., None]
+
+
+def _6d_indices() -> tuple[Any, ...]:
+    # the positions of the first two columns and of the first two rows in the row-major entries
+    return [0, 3, 6, 1, 4, 7], [0, 1, 2, 3, 4, 5]
+
+
+@eager_form(of=matrix_to_rotation_6d)
+def matrix_to_rotation_6d_eager(xp: Any, matrix: Any, *, layout: str = "columns") -> Any:
+    """:func:`matrix_to_rotation_6d`, eager form: one gather of six of the nine flattened entries, and
+    the sum of ``0 * entries`` for the non-finite rows (the very numbers, in five operations)."""
+    columns, rows = constants(xp, matrix, _6d_indices)
+    flat = matrix.flatten(-2)
+    out = flat[..., columns if _layout_axis("matrix_to_rotation_6d", layout) == -1 else rows]
+    return out + (cancelling_factor(xp, flat) * 0.0).sum(-1, keepdim=True)
 
 
 # ---------------------------------------------------------------------------------------------------

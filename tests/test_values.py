@@ -3,6 +3,7 @@ dtype and case in the table."""
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import os
 import subprocess
@@ -372,6 +373,30 @@ def test_nonfinite_rows_by_arithmetic_hold_compiled(op: Op, backend: Backend) ->
     out = backend.to_numpy(compiled(*xs))
     expected = backend.to_numpy(op(module, *(backend.array(x, "float64") for x in clean)))
     assert_nan_rows(out, expected, bad, atol=tol(op, "float32"))
+
+
+@only(op=_nan_rows_by_arithmetic, backend=lambda name: name == "torch")
+def test_nonfinite_rows_by_arithmetic_hold_for_every_entry_on_both_forms(op: Op, backend: Backend) -> None:
+    """``_core.NONFINITE_BY_ARITHMETIC`` promises a NaN row for a non-finite entry anywhere, and two
+    forms compute each map in eager torch (the eager form, and the componentwise one, also the
+    compilers'), whose arithmetic differs: every entry of every argument in turn, NaN, +inf and -inf,
+    in every row of a batch of generic rotations, the identity and its negative (where products with
+    zero components are exact zeros), gives all-NaN rows in both forms."""
+    import torch
+
+    from diffquat.torch._custom import componentwise
+
+    q = np.concatenate([uniform_quaternions(6, seed=7), np.eye(4)[:1], -np.eye(4)[:1]])
+    clean = [np.asarray(x, dtype=np.float64) for x in op.inputs(q)]
+    for i, x in enumerate(clean):
+        for j in range(x.reshape(len(q), -1).shape[1]):
+            for value in (np.nan, np.inf, -np.inf):
+                poisoned = [y.copy() for y in clean]
+                poisoned[i].reshape(len(q), -1)[:, j] = value
+                for forced in (False, True):
+                    with componentwise() if forced else contextlib.nullcontext():
+                        out = op(backend.module, *(torch.tensor(y) for y in poisoned)).numpy()
+                    assert np.isnan(out).all(), f"argument {i}, entry {j}, {value}, componentwise={forced}"
 
 
 @only(op=lambda op: op.name in ("matrix_to_quaternion", "matrix_to_axis_angle", "matrix_to_euler_angles"))
