@@ -40,6 +40,8 @@ from ._core import (
     Conversion,
     cancelling_factor,
     computed_once,
+    constants,
+    eager_form,
     matrix_to_quaternion,
     nonfinite_by_arithmetic,
     op,
@@ -249,6 +251,68 @@ def se3_apply(xp: Any, matrix: Any, points: Any) -> Any:
     # [R | t] times (p + term, 1 + term): the term reaches every component through the product, and
     # no elementwise pass follows it, which inductor would run as a loop over the trailing 3
     return small_matmul(xp, m[..., :3, :], xp.concat([p + term, term + xp.ones_like(term)], axis=-2))[..., 0]
+
+
+# Eager forms (_core.EAGER_FORMS: eager torch outside graph capture) of composing, inverting and
+# applying: one batched product of 4x4 matrices whose bottom rows are set by a constant mask and bias
+# (one ``addcmul`` each), and the non-finite term of the componentwise forms, from the inputs (so that
+# a finite pose whose result overflows keeps the componentwise result), added once.
+
+
+def _pose_masks() -> tuple[list[Any], ...]:
+    """(4, 4) constants: the mask of the top rows, the bias ``e4 e4^T`` (the bottom row (0, 0, 0, 1)),
+    the mask of the top-left 3x3 block, the negated translation column, the identity."""
+    top = [[1.0] * 4 if i < 3 else [0.0] * 4 for i in range(4)]
+    corner = [[1.0 if i == j == 3 else 0.0 for j in range(4)] for i in range(4)]
+    block = [[1.0 if i < 3 and j < 3 else 0.0 for j in range(4)] for i in range(4)]
+    column = [[-1.0 if i < 3 and j == 3 else 0.0 for j in range(4)] for i in range(4)]
+    eye = [[1.0 if i == j else 0.0 for j in range(4)] for i in range(4)]
+    return top, corner, block, column, eye
+
+
+def _product(xp: Any, a: Any, b: Any) -> Any:
+    """``a @ b`` of ``(..., n, k)`` and ``(..., k, m)``: ``bmm`` (one operation) where both are
+    ``(B, n, k)`` with one ``B``, else ``matmul``, which broadcasts (a few views more)."""
+    if a.ndim == b.ndim == 3 and a.shape[0] == b.shape[0]:
+        return xp.bmm(a, b)
+    return xp.matmul(a, b)
+
+
+@eager_form(of=se3_compose)
+def se3_compose_eager(xp: Any, matrix1: Any, matrix2: Any) -> Any:
+    """:func:`se3_compose`, eager form: ``P1 P2`` with ``P = T``'s top rows over ``(0, 0, 0, 1)``
+    (the second: ``addcmul`` of the mask and the bias; the first masked, its bias added after the
+    product, ``baddbmm``), plus ``term`` in every entry (0, or NaN for a pose with a non-finite entry
+    in either input: ``(T1 - T1) T2`` summed). The bottom row is ``(0, 0, 0, 1) P2 = (0, 0, 0, 1)``
+    exactly. Seven operations for one batch dimension (a bare ``matmul`` of poses takes six, with
+    neither the bottom row nor the non-finite rows), eleven more for the backward pass."""
+    top, corner, *_ = constants(xp, matrix1, _pose_masks)
+    term = cancelling_factor(xp, ((matrix1 - matrix1) * matrix2).sum((-2, -1), keepdim=True))
+    a, b = matrix1 * top, xp.addcmul(corner, matrix2, top)
+    if a.ndim == b.ndim == 3 and a.shape[0] == b.shape[0]:
+        return xp.baddbmm(corner + term, a, b)
+    return xp.matmul(a, b) + (corner + term)
+
+
+@eager_form(of=se3_inverse)
+def se3_inverse_eager(xp: Any, matrix: Any) -> Any:
+    """:func:`se3_inverse`, eager form: ``[[R^T, 0], [0, 1]] [[I, -t], [0, 1]]``, each factor one
+    ``addcmul`` of ``T`` (transposed, for the first) with a constant mask and bias; the non-finite term
+    ``T - T`` summed rides on the first factor's bias. Six operations for one batch dimension."""
+    _, corner, block, column, eye = constants(xp, matrix, _pose_masks)
+    term = cancelling_factor(xp, (matrix - matrix).sum((-2, -1), keepdim=True))
+    return _product(xp, xp.addcmul(corner + term, matrix.mT, block), xp.addcmul(eye, matrix, column))
+
+
+@eager_form(of=se3_apply)
+def se3_apply_eager(xp: Any, matrix: Any, points: Any) -> Any:
+    """:func:`se3_apply`, eager form: ``T (p, 1)`` as a product summed over the last axis (it
+    broadcasts any batch shapes), plus the non-finite term: ``(T - T) (p, 1)`` summed over all four
+    rows, so that a non-finite entry of either input, the bottom row's included, makes the whole
+    result NaN. Ten operations for one batch dimension."""
+    ph = xp.nn.functional.pad(points, (0, 1), value=1.0)[..., None, :]
+    term = cancelling_factor(xp, ((matrix - matrix) * ph).sum((-2, -1)))
+    return (matrix * ph).sum(-1)[..., :3] + term[..., None]
 
 
 # ---------------------------------------------------------------------------------------------------
