@@ -56,6 +56,7 @@ from ._lie import (
     _components,
     _inverse_coefficients,
     _jacobian_coefficients,
+    _jacobian_coefficients_eager,
     _series,
     check_side,
     so3_hat,
@@ -375,6 +376,65 @@ def se3_exp(xp: Any, xi: Any, *, to_matrix: Conversion = unit_quaternion_to_matr
     rotation = axis_angle_to_matrix(xp, phi, to_matrix=to_matrix)
     translation = _left_jacobian_times(xp, phi, rho)
     return _with_bottom(xp, xp.concat([rotation, _column(translation)], axis=-1))
+
+
+def _exp_forms() -> tuple[list[Any], ...]:
+    """Constants of :func:`se3_exp_eager`: ``E`` (3, 64), the coefficient (of ``p, q, r``) of each
+    product ``v_a v_b y_c`` (``v = (1, phi)``, ``y = (1, rho)``, index ``16 a + 4 b + c``); ``A``
+    (64, 16), the entries of the pose (row-major) each product feeds; the bias, the identity.
+
+    ``R = I + p hat(phi) + q hat(phi)^2`` with ``hat(phi)^2 = phi phi^T - |phi|^2 I``, and
+    ``t = J_l(phi) rho = p rho + q phi x rho + r phi (phi . rho)``: every entry is linear in these
+    products, with one of ``p, q, r`` for each."""
+    e = [[0.0] * 64 for _ in range(3)]
+    a = [[0.0] * 16 for _ in range(64)]
+    # hat(w) = [[0, -z, y], [z, 0, -x], [-y, x, 0]]: (row, column, sign) per component of w
+    hat = {0: ((1, 2, -1.0), (2, 1, 1.0)), 1: ((0, 2, 1.0), (2, 0, -1.0)), 2: ((0, 1, -1.0), (1, 0, 1.0))}
+    for i, j in ((i, j) for i in range(4) for j in range(4)):
+        rot, trans = 16 * i + 4 * j, [16 * i + 4 * j + c for c in range(1, 4)]
+        if i == 0 and j > 0:  # hat(phi) in R (p), phi x rho in t (q)
+            e[0][rot] = 1.0
+            for row, col, sign in hat[j - 1]:
+                a[rot][4 * row + col] = sign
+            for c, f in enumerate(trans):
+                e[1][f] = 1.0
+                for row, col, sign in hat[j - 1]:
+                    if col == c:  # (phi x rho)_row = sum hat(phi)[row, col] rho_col
+                        a[f][4 * row + 3] = sign
+        elif i > 0 and j > 0:  # phi phi^T - |phi|^2 I in R (q), phi (phi . rho) in t (r)
+            e[1][rot] = 1.0
+            a[rot][4 * (i - 1) + j - 1] += 1.0
+            if i == j:
+                for k in range(3):
+                    a[rot][5 * k] -= 1.0
+            e[2][trans[j - 1]] = 1.0
+            a[trans[j - 1]][4 * (i - 1) + 3] = 1.0
+        elif i == 0 and j == 0:  # rho in t (p)
+            for c, f in enumerate(trans):
+                e[0][f] = 1.0
+                a[f][4 * c + 3] = 1.0
+    bias = [1.0 if k in (0, 5, 10, 15) else 0.0 for k in range(16)]
+    return e, a, bias
+
+
+@nonfinite_by_arithmetic
+@eager_form(of=se3_exp)
+def se3_exp_eager(xp: Any, xi: Any, *, to_matrix: Conversion = unit_quaternion_to_matrix) -> Any:
+    """:func:`se3_exp`, eager form: the coefficients ``(p, q, r)`` of ``J_l(phi)``
+    (``_lie._jacobian_coefficients_eager``: the same series and closed forms) and the products of
+    ``(1, phi)``, ``(1, phi)`` and ``(1, rho)``, contracted with constant forms (:func:`_exp_forms`)
+    into the 16 entries at once, the bottom row ``(0, 0, 0, 1)`` by the bias alone. Rodrigues' formula
+    for the rotation (the componentwise form goes through the unit quaternion; both are accurate to a
+    few ulps of 1). A non-finite twist makes every entry NaN: the coefficients or the products carry
+    it to every column of the contraction (``NaN * 0``)."""
+    e, a, bias = constants(xp, xi, _exp_forms)
+    phi = xi[..., 3:]
+    v = xp.nn.functional.pad(phi, (1, 0), value=1.0)
+    y = xp.nn.functional.pad(xi, (1, 0), value=1.0)[..., :4]
+    f = ((v[..., :, None] * v[..., None, :]).flatten(-2)[..., :, None] * y[..., None, :]).flatten(-2)
+    fg = f * xp.matmul(_jacobian_coefficients_eager(xp, phi), e)
+    out = xp.addmm(bias, fg, a) if fg.ndim == 2 else xp.matmul(fg, a) + bias
+    return out.unflatten(-1, (4, 4))
 
 
 def _log(xp: Any, matrix: Any, to_quaternion: Conversion) -> Any:
