@@ -20,6 +20,9 @@ from ._algebra import hamilton, nonzero_or_identity, safe_norm
 from ._core import (
     Conversion,
     computed_once,
+    constants,
+    eager_form,
+    nonfinite_by_arithmetic,
     join_quaternion,
     op,
     quaternion_to_matrix,
@@ -97,6 +100,124 @@ def euler_angles_to_matrix(
     # The quaternion (behind cos and sin) is computed once, not again in each of the nine entries.
     q = computed_once(xp, euler_angles_to_quaternion(xp, angles, convention, degrees=degrees))
     return to_matrix(xp, q)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Eager forms (_core.EAGER_FORMS: eager torch outside graph capture). A rotation (or a quaternion) of
+# three elementary rotations is trilinear in the three pairs (cos, sin) of the angles (of the half
+# angles): the outer product of the three pairs (each padded with a 1 for the matrix) times a constant
+# coefficient matrix for the convention, a dozen operations in all.
+
+
+def _matmul3(a: list[list[float]], b: list[list[float]]) -> list[list[float]]:
+    return [[sum(a[i][k] * b[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
+
+
+def _qmul(p: list[float], q: list[float]) -> list[float]:
+    """The Hamilton product of two scalar-first quaternions (Python numbers)."""
+    pw, px, py, pz = p
+    qw, qx, qy, qz = q
+    return [
+        pw * qw - px * qx - py * qy - pz * qz,
+        pw * qx + px * qw + py * qz - pz * qy,
+        pw * qy + py * qw + pz * qx - px * qz,
+        pw * qz + pz * qw + px * qy - py * qx,
+    ]
+
+
+_EULER_MAKERS: dict[tuple[str, bool], Any] = {}
+
+
+def _euler_forms(convention: str, scalar_first: bool | None) -> Any:
+    """The maker (for ``_core.constants``, one function object per convention) of the coefficient
+    matrix of a convention: the matrix (``scalar_first`` None), (27, 9), row ``9 i + 3 j + k`` the
+    entries of the product of ``(1, cos, sin)[i]`` of the first angle, ``[j]`` of the second, ``[k]``
+    of the third; or the quaternion, (8, 4), of ``(cos, sin)`` of the half angles likewise, in
+    ``scalar_first``'s order."""
+    key = (convention, scalar_first)
+    if key in _EULER_MAKERS:
+        return _EULER_MAKERS[key]
+    axes, extrinsic = parse_convention("euler_angles", convention)
+    order = [2, 1, 0] if extrinsic else [0, 1, 2]  # the angles in the order of the factors
+
+    def make() -> tuple[list[Any], ...]:
+        if scalar_first is None:
+            parts = []
+            for a in axes:  # 1, cos and sin's coefficient matrices of the rotation about axis a
+                one = [[1.0 if i == j == a else 0.0 for j in range(3)] for i in range(3)]
+                cos = [[1.0 if i == j != a else 0.0 for j in range(3)] for i in range(3)]
+                sin = [[0.0] * 3 for _ in range(3)]
+                b, c = (a + 1) % 3, (a + 2) % 3
+                sin[c][b], sin[b][c] = 1.0, -1.0
+                parts.append((one, cos, sin))
+            rows = []
+            for i, j, k in ((i, j, k) for i in range(3) for j in range(3) for k in range(3)):
+                pick = (i, j, k)
+                m = parts[order[0]][pick[order[0]]]
+                for n in order[1:]:
+                    m = _matmul3(m, parts[n][pick[n]])
+                rows.append([m[r][c] for r in range(3) for c in range(3)])
+            return (rows,)
+        halves = []
+        for a in axes:
+            unit = [0.0, 0.0, 0.0, 0.0]
+            unit[a + 1] = 1.0
+            halves.append(([1.0, 0.0, 0.0, 0.0], unit))
+        rows = []
+        for i, j, k in ((i, j, k) for i in range(2) for j in range(2) for k in range(2)):
+            pick = (i, j, k)
+            q = halves[order[0]][pick[order[0]]]
+            for n in order[1:]:
+                q = _qmul(q, halves[n][pick[n]])
+            rows.append(q if scalar_first else q[1:] + q[:1])
+        return (rows,)
+
+    _EULER_MAKERS[key] = make
+    return make
+
+
+def _trilinear(xp: Any, pairs: Any) -> Any:
+    """The products ``a_i b_j c_k`` of the rows ``a, b, c`` of ``pairs`` ``(..., 3, n)``:
+    ``(..., n^3)``, index ``n^2 i + n j + k``."""
+    a, b, c = pairs.unbind(-2)
+    return ((a[..., :, None] * b[..., None, :]).flatten(-2)[..., :, None] * c[..., None, :]).flatten(-2)
+
+
+@nonfinite_by_arithmetic
+@eager_form(of=euler_angles_to_quaternion)
+def euler_angles_to_quaternion_eager(
+    xp: Any, angles: Any, convention: str, *, degrees: bool = False, scalar_first: bool = True
+) -> Any:
+    """:func:`euler_angles_to_quaternion`, eager form: the products of ``(cos, sin)`` of the three
+    half angles times the convention's constant (8, 4) coefficients (the same Hamilton products,
+    expanded). A non-finite angle makes every component NaN (its cosine and sine reach every column of
+    the product: ``NaN * 0``)."""
+    (forms,) = constants(xp, angles, _euler_forms(convention, bool(scalar_first)))
+    half = angles * (math.pi / 360.0 if degrees else 0.5)
+    return xp.matmul(_trilinear(xp, xp.stack([xp.cos(half), xp.sin(half)], -1)), forms)
+
+
+@nonfinite_by_arithmetic
+@eager_form(of=euler_angles_to_matrix)
+def euler_angles_to_matrix_eager(
+    xp: Any,
+    angles: Any,
+    convention: str,
+    *,
+    degrees: bool = False,
+    to_matrix: Conversion = quaternion_to_matrix,
+) -> Any:
+    """:func:`euler_angles_to_matrix`, eager form: the product of the three elementary rotations,
+    expanded: the products of ``(1, cos, sin)`` of the three angles times the convention's constant
+    (27, 9) coefficients. Sums of at most four products of sines and cosines: accurate to a few ulps
+    like the route through the quaternion. A non-finite angle makes every entry NaN (``NaN * 0`` in
+    the product)."""
+    parse_convention("euler_angles_to_matrix", convention)
+    (forms,) = constants(xp, angles, _euler_forms(convention, None))
+    if degrees:
+        angles = angles * (math.pi / 180.0)
+    pairs = xp.nn.functional.pad(xp.stack([xp.cos(angles), xp.sin(angles)], -1), (1, 0), value=1.0)
+    return xp.matmul(_trilinear(xp, pairs), forms).unflatten(-1, (3, 3))
 
 
 def _quaternion_to_euler(
