@@ -133,6 +133,22 @@ def se3_from_rotation_translation(xp: Any, rotation: Any, translation: Any) -> A
     return _with_bottom(xp, xp.concat([r, t], axis=-1))
 
 
+@nonfinite_by_arithmetic
+@eager_form(of=se3_from_rotation_translation)
+def se3_from_rotation_translation_eager(xp: Any, rotation: Any, translation: Any) -> Any:
+    """:func:`se3_from_rotation_translation`, eager form: ``[R | t]`` (one ``cat``), padded with a zero
+    bottom row, plus the bias ``e4 e4^T`` and the non-finite term ``[R | t] - [R | t]`` summed (0, or
+    NaN in every entry of a row with a non-finite input)."""
+    _, corner, *_ = constants(xp, rotation, _pose_masks)
+    t = translation[..., None]
+    if rotation.shape[:-2] != t.shape[:-2]:
+        batch = tuple(xp.broadcast_shapes(tuple(rotation.shape[:-2]), tuple(t.shape[:-2])))
+        rotation, t = xp.broadcast_to(rotation, (*batch, 3, 3)), xp.broadcast_to(t, (*batch, 3, 1))
+    top = xp.cat([rotation, t], -1)
+    term = cancelling_factor(xp, (top - top).sum((-2, -1), keepdim=True))
+    return xp.nn.functional.pad(top, (0, 0, 0, 1)) + (corner + term)
+
+
 @op(matrix=(4, 4))
 def se3_to_rotation_translation(xp: Any, matrix: Any) -> Any:
     """The rotation and the translation of poses: ``(R, t)`` of ``T = [[R, t], [0, 1]]``.
@@ -350,6 +366,44 @@ def se3_vee(xp: Any, matrix: Any) -> Any:
     return xp.concat([matrix[..., :3, 3], so3_vee(xp, matrix[..., :3, :3])], axis=-1)
 
 
+# Eager forms of the linear maps: one product of the flattened input with a constant matrix (two
+# operations). The backends' rule makes non-finite rows NaN after them: through the product an
+# infinity stays infinite in the entries it feeds.
+
+
+def _linear_forms() -> tuple[list[Any], ...]:
+    """(6, 16) ``se3_hat``, (16, 6) ``se3_vee``, (6, 36) ``se3_ad``: the coefficient of each input
+    entry in each output entry (row-major)."""
+    skew = {0: ((2, 1, 1.0), (1, 2, -1.0)), 1: ((0, 2, 1.0), (2, 0, -1.0)), 2: ((1, 0, 1.0), (0, 1, -1.0))}
+    hat = [[0.0] * 16 for _ in range(6)]
+    vee = [[0.0] * 6 for _ in range(16)]
+    ad = [[0.0] * 36 for _ in range(6)]
+    for k in range(3):
+        hat[k][4 * k + 3] = 1.0
+        vee[4 * k + 3][k] = 1.0
+        for row, col, sign in skew[k]:
+            hat[3 + k][4 * row + col] = sign
+            vee[4 * row + col][3 + k] = 0.5 * sign
+            for r0, c0, source in ((0, 0, 3 + k), (0, 3, k), (3, 3, 3 + k)):
+                ad[source][6 * (r0 + row) + c0 + col] = sign
+    return hat, vee, ad
+
+
+@eager_form(of=se3_hat)
+def se3_hat_eager(xp: Any, xi: Any) -> Any:
+    """:func:`se3_hat`, eager form: ``xi`` times a constant (6, 16) matrix."""
+    hat, _, _ = constants(xp, xi, _linear_forms)
+    return xp.matmul(xi, hat).unflatten(-1, (4, 4))
+
+
+@eager_form(of=se3_vee)
+def se3_vee_eager(xp: Any, matrix: Any) -> Any:
+    """:func:`se3_vee`, eager form: the 16 entries times a constant (16, 6) matrix (``0.5 m_21 - 0.5
+    m_12``: halving is exact, the same numbers as ``0.5 (m_21 - m_12)``)."""
+    _, vee, _ = constants(xp, matrix, _linear_forms)
+    return xp.matmul(matrix.flatten(-2), vee)
+
+
 def _left_jacobian_times(xp: Any, phi: Any, v: Any) -> Any:
     """``J_l(phi) v = p v + q phi x v + r phi (phi . v)`` for vectors ``v`` ``(..., 3)``."""
     p, q, r = computed_once(xp, _jacobian_coefficients(xp, phi))
@@ -498,6 +552,13 @@ def se3_ad(xp: Any, xi: Any) -> Any:
     rho, phi = _split(xi)
     w = so3_hat(xp, phi)
     return _blocks(xp, w, so3_hat(xp, rho), w)
+
+
+@eager_form(of=se3_ad)
+def se3_ad_eager(xp: Any, xi: Any) -> Any:
+    """:func:`se3_ad`, eager form: ``xi`` times a constant (6, 36) matrix."""
+    _, _, ad = constants(xp, xi, _linear_forms)
+    return xp.matmul(xi, ad).unflatten(-1, (6, 6))
 
 
 # ---------------------------------------------------------------------------------------------------
