@@ -808,6 +808,49 @@ def se3_interpolate(
     return _with_bottom(xp, xp.concat([rotation, translation], axis=-1))
 
 
+# Eager forms of the perturbation and the screw interpolation: the same steps through the eager forms
+# of exp, compose and inverse (the logarithm is the componentwise one).
+
+
+@nonfinite_by_arithmetic
+@eager_form(of=se3_plus)
+def se3_plus_eager(
+    xp: Any,
+    matrix: Any,
+    delta: Any,
+    *,
+    side: str = "right",
+    to_matrix: Conversion = unit_quaternion_to_matrix,
+) -> Any:
+    """:func:`se3_plus`, eager form: :func:`se3_compose_eager` of the pose and :func:`se3_exp_eager`
+    of the twist (NaN in every entry for a non-finite twist, so compose's term covers both inputs)."""
+    right = check_side("se3_plus", side)
+    step = se3_exp_eager(xp, delta)
+    return se3_compose_eager(xp, matrix, step) if right else se3_compose_eager(xp, step, matrix)
+
+
+@eager_form(of=se3_interpolate)
+def se3_interpolate_eager(
+    xp: Any,
+    matrix1: Any,
+    matrix2: Any,
+    t: Any,
+    *,
+    mode: str = "screw",
+    to_matrix: Conversion = unit_quaternion_to_matrix,
+    to_quaternion: Conversion = matrix_to_quaternion,
+) -> Any:
+    """:func:`se3_interpolate`, eager form: the screw through the eager forms of inverse, compose and
+    exp; the decoupled mode is the componentwise function's."""
+    if mode != "screw":
+        return se3_interpolate(
+            xp, matrix1, matrix2, t, mode=mode, to_matrix=to_matrix, to_quaternion=to_quaternion
+        )
+    a, b, s = match_rank(xp, matrix1, matrix2, _column(_column(t)))
+    xi = _log(xp, se3_compose_eager(xp, se3_inverse_eager(xp, a), b), to_quaternion)
+    return se3_compose_eager(xp, a, se3_exp_eager(xp, s[..., 0] * xi))
+
+
 # ---------------------------------------------------------------------------------------------------
 # 7-vector poses: a quaternion and a translation, in each peer's order
 
