@@ -53,8 +53,11 @@ from ._core import (
 from ._lie import (
     _B_SERIES,
     _assemble,
+    _assemble_eager,
     _components,
+    _hat_forms,
     _inverse_coefficients,
+    _inverse_coefficients_eager,
     _jacobian_coefficients,
     _jacobian_coefficients_eager,
     _series,
@@ -522,6 +525,42 @@ def se3_log(xp: Any, matrix: Any, *, to_quaternion: Conversion = matrix_to_quate
 # Adjoints
 
 
+# atan2(s, w) / s as a series in x = s^2 / w^2 below x ~ 1e-4 (w > 0.99 there): (1/w) (1 - x/3 + x^2/5
+# - ...); the first term left out, x^5 / 11 < 1e-21, is below float64's rounding. Above, the closed
+# form (a quotient, no cancellation); the series keeps its derivatives finite at s = 0.
+_LOG_SERIES_BELOW = 1e-4
+
+
+def _log_constants() -> tuple[list[Any], ...]:
+    """2 (the constant term of 2 atan2(s, w) / s, times w), the powers 1-4 and their terms."""
+    return [2.0], [1.0, 2.0, 3.0, 4.0], [[2.0 * (-1) ** k / (2 * k + 1)] for k in range(1, 5)]
+
+
+@eager_form(of=se3_log)
+def se3_log_eager(xp: Any, matrix: Any, *, to_quaternion: Conversion = matrix_to_quaternion) -> Any:
+    """:func:`se3_log`, eager form: ``phi = 2 atan2(|v|, w) v / |v|`` of the unit quaternion
+    ``(w, v)`` (``w >= 0``) of ``R`` (the conversion the componentwise form reads too), and
+    ``rho = J_l(phi)^-1 t`` from ``_lie``'s eager inverse: ``(p, r)`` in one array, the matrix from
+    constant forms, one product with ``t``."""
+    return _log_eager(xp, matrix, to_quaternion)
+
+
+def _log_eager(xp: Any, matrix: Any, to_quaternion: Conversion) -> Any:
+    """:func:`se3_log_eager`'s twist, for the eager forms that take a logarithm."""
+    first, powers, table = constants(xp, matrix, _log_constants)
+    q = to_quaternion(xp, matrix[..., :3, :3])
+    w, v = q[..., :1], q[..., 1:]
+    n2 = (v * v).sum(-1, keepdim=True)
+    # double where by clamps: each branch reads a finite value where the other one is chosen
+    ws, s = w.clamp_min(0.5), xp.sqrt(n2.clamp_min(_LOG_SERIES_BELOW))
+    x = n2.clamp_max(_LOG_SERIES_BELOW) / (ws * ws)
+    series = (xp.matmul(x**powers, table) + first) / ws
+    phi = xp.where(n2 < _LOG_SERIES_BELOW, series, 2.0 * xp.atan2(s, w) / s) * v
+    _, _, _, inverse, bias, _ = constants(xp, phi, _hat_forms)
+    j_inv = _assemble_eager(xp, phi, _inverse_coefficients_eager(xp, phi), inverse, bias)
+    return xp.cat([(j_inv * matrix[..., None, :3, 3]).sum(-1), phi], -1)
+
+
 @op(matrix=(4, 4))
 def se3_adjoint(xp: Any, matrix: Any) -> Any:
     """The adjoint ``Ad(T) = [[R, hat(t) R], [0, R]]`` of poses, acting on twists ``(rho, phi)``:
@@ -808,8 +847,8 @@ def se3_interpolate(
     return _with_bottom(xp, xp.concat([rotation, translation], axis=-1))
 
 
-# Eager forms of the perturbation and the screw interpolation: the same steps through the eager forms
-# of exp, compose and inverse (the logarithm is the componentwise one).
+# Eager forms of the perturbations and the screw interpolation: the same steps through the eager forms
+# of exp, log, compose and inverse.
 
 
 @nonfinite_by_arithmetic
@@ -829,6 +868,23 @@ def se3_plus_eager(
     return se3_compose_eager(xp, matrix, step) if right else se3_compose_eager(xp, step, matrix)
 
 
+@eager_form(of=se3_minus)
+def se3_minus_eager(
+    xp: Any,
+    matrix1: Any,
+    matrix2: Any,
+    *,
+    side: str = "right",
+    to_quaternion: Conversion = matrix_to_quaternion,
+) -> Any:
+    """:func:`se3_minus`, eager form: :func:`se3_log_eager` of the relative pose, which
+    :func:`se3_inverse_eager` and :func:`se3_compose_eager` make."""
+    right = check_side("se3_minus", side)
+    inverse = se3_inverse_eager(xp, matrix2)
+    relative = se3_compose_eager(xp, inverse, matrix1) if right else se3_compose_eager(xp, matrix1, inverse)
+    return _log_eager(xp, relative, to_quaternion)
+
+
 @eager_form(of=se3_interpolate)
 def se3_interpolate_eager(
     xp: Any,
@@ -840,14 +896,14 @@ def se3_interpolate_eager(
     to_matrix: Conversion = unit_quaternion_to_matrix,
     to_quaternion: Conversion = matrix_to_quaternion,
 ) -> Any:
-    """:func:`se3_interpolate`, eager form: the screw through the eager forms of inverse, compose and
-    exp; the decoupled mode is the componentwise function's."""
+    """:func:`se3_interpolate`, eager form: the screw through the eager forms of inverse, compose, log
+    and exp; the decoupled mode is the componentwise function's."""
     if mode != "screw":
         return se3_interpolate(
             xp, matrix1, matrix2, t, mode=mode, to_matrix=to_matrix, to_quaternion=to_quaternion
         )
     a, b, s = match_rank(xp, matrix1, matrix2, _column(_column(t)))
-    xi = _log(xp, se3_compose_eager(xp, se3_inverse_eager(xp, a), b), to_quaternion)
+    xi = _log_eager(xp, se3_compose_eager(xp, se3_inverse_eager(xp, a), b), to_quaternion)
     return se3_compose_eager(xp, a, se3_exp_eager(xp, s[..., 0] * xi))
 
 
