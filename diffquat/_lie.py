@@ -372,13 +372,13 @@ def _hat_forms() -> tuple[list[Any], ...]:
 _EPS = (1.1920928955078125e-07, 2.220446049250313e-16)  # float32's and float64's (the compute dtypes)
 
 
-def _series_tables(*series: tuple[float, ...]) -> tuple[list[Any], ...]:
+def _series_tables(*series: tuple[float, ...], below: float = SERIES_BELOW) -> tuple[list[Any], ...]:
     """For float32, then float64: the constant terms, the powers ``1, ..., n - 1`` and the
     ``(n - 1, m)`` table of the next terms of ``m`` series, ``n`` the most any of them needs in that
-    dtype (:func:`_truncated`: a quarter of an ulp at ``SERIES_BELOW``; more terms only round closer)."""
+    dtype (:func:`_truncated`: a quarter of an ulp at ``below``; more terms only round closer)."""
     out: list[list[Any]] = []
     for eps in _EPS:
-        n = max(len(_truncated(s, eps)) for s in series)
+        n = max(len(_truncated(s, eps, below)) for s in series)
         out += [
             [s[0] for s in series],
             [float(k) for k in range(1, n)],

@@ -61,6 +61,8 @@ from ._lie import (
     _jacobian_coefficients,
     _jacobian_coefficients_eager,
     _series,
+    _series_eager,
+    _series_tables,
     check_side,
     so3_hat,
     so3_vee,
@@ -726,6 +728,117 @@ def se3_left_jacobian_inverse(xp: Any, xi: Any) -> Any:
 @op(xi=(6,))
 def se3_right_jacobian_inverse(xp: Any, xi: Any) -> Any:
     return _left_jacobian_inverse(xp, -xi)
+
+
+# Eager forms of the Jacobians (_core.EAGER_FORMS): J_l(phi) and its inverse from _lie's eager forms;
+# Q's coefficients (c1, c2, c3) as one (..., 3) array (series below Q_SERIES_BELOW, the same closed
+# forms above); the matrix of _q_block's (h, v, w) over (rho, phi, phi x rho), its entries and delta
+# from the products of (1, u, d, d u) and (1, c1, c2, c3) and a constant (16, 10) matrix; Q =
+# hat(h) + delta I + [v, phi] [phi, w]^T.
+
+
+def _q_constants() -> tuple[list[Any], ...]:
+    """Constants of :func:`_q_block_eager`: ``(1, 1/2)``; the numerators' forms (7, 3) in ``(t, sin t,
+    sin(t/2), sin^2 t, sin^2(t/2), t cos t, u)`` and the denominators' factors ``(1, 2, 2)``; the
+    coefficient matrix (16, 10) of :func:`_q_block_eager`; ``(hat(h), delta I)`` (4, 9); then the
+    series tables of ``(c1, c2, c3)``."""
+    numerators = [[0.0] * 3 for _ in range(7)]
+    for row, col, value in (
+        (0, 0, 1.0),
+        (1, 0, -1.0),
+        (6, 1, 1.0),
+        (4, 1, -4.0),
+        (0, 2, 2.0),
+        (1, 2, -3.0),
+        (5, 2, 1.0),
+    ):
+        numerators[row][col] = value
+    k = [[0.0] * 10 for _ in range(16)]
+    one, u, d, du, c1, c2, c3 = 0, 1, 2, 3, 1, 2, 3
+    # rows of K: h, v, w; columns: rho, phi, phi x rho; then delta
+    entries = [
+        (0, 0, one, 0, 0.5), (0, 0, u, c2, -2.0), (0, 1, d, c2, 3.0), (0, 1, d, c1, -1.0),
+        (1, 0, one, c1, 1.0), (1, 1, d, c3, -2.0), (1, 2, one, c2, -1.0),
+        (2, 0, one, c1, 1.0), (2, 2, one, c2, 1.0),
+    ]  # fmt: skip
+    for row, col, i, j, value in entries:
+        k[4 * i + j][3 * row + col] += value
+    k[4 * du + c3][9] += 2.0
+    k[4 * d + c1][9] -= 2.0
+    hat_delta = [[0.0] * 9 for _ in range(4)]
+    for comp, cells in ((0, ((7, 1.0), (5, -1.0))), (1, ((2, 1.0), (6, -1.0))), (2, ((3, 1.0), (1, -1.0)))):
+        for cell, sign in cells:
+            hat_delta[comp][cell] = sign
+    for cell in (0, 4, 8):
+        hat_delta[3][cell] = 1.0
+    tables = _series_tables(_C1_SERIES, _C2_SERIES, _C3_SERIES, below=Q_SERIES_BELOW)
+    return [1.0, 0.5], numerators, [1.0, 2.0, 2.0], k, hat_delta, *tables
+
+
+def _q_block_eager(xp: Any, rho: Any, phi: Any) -> Any:
+    """:func:`_q_block`, eager form: ``(..., 3, 3)``."""
+    ang, numerators, factors, k, hat_delta, *tables = constants(xp, rho, _q_constants)
+    u = (phi * phi).sum(-1, keepdim=True)
+    uc = u.clamp_min(Q_SERIES_BELOW)
+    t = xp.sqrt(uc)
+    s = xp.sin(t * ang)
+    tu = t * uc
+    z = xp.cat([t, s, s * s, t * xp.cos(t), uc], -1)
+    closed = xp.matmul(z, numerators) / (xp.cat([t, uc, tu], -1) * factors * uc)
+    series = _series_eager(xp, u.clamp_max(Q_SERIES_BELOW), tuple(tables))
+    c = xp.where(u < Q_SERIES_BELOW, series, closed)
+    d = (phi * rho).sum(-1, keepdim=True)
+    left = xp.nn.functional.pad(xp.cat([u, d, d * u], -1), (1, 0), value=1.0)
+    right = xp.nn.functional.pad(c, (1, 0), value=1.0)
+    kd = xp.matmul((left[..., :, None] * right[..., None, :]).flatten(-2), k)
+    basis = xp.stack([rho, phi, xp.linalg.cross(phi, rho)], -2)
+    h, v, w = _product(xp, kd[..., :9].unflatten(-1, (3, 3)), basis).unbind(-2)
+    outer = _product(xp, xp.stack([v, phi], -1), xp.stack([phi, w], -2))
+    return outer + xp.matmul(xp.cat([h, kd[..., 9:]], -1), hat_delta).unflatten(-1, (3, 3))
+
+
+def _left_jacobian_eager(xp: Any, xi: Any) -> Any:
+    rho, phi = xi[..., :3], xi[..., 3:]
+    _, left, *_ = constants(xp, xi, _hat_forms)
+    j = _assemble_eager(xp, phi, _jacobian_coefficients_eager(xp, phi), left)
+    return _blocks_eager(xp, j, _q_block_eager(xp, rho, phi))
+
+
+def _left_jacobian_inverse_eager(xp: Any, xi: Any) -> Any:
+    rho, phi = xi[..., :3], xi[..., 3:]
+    _, _, _, inverse, bias, _ = constants(xp, xi, _hat_forms)
+    j_inv = _assemble_eager(xp, phi, _inverse_coefficients_eager(xp, phi), inverse, bias)
+    block = -_product(xp, _product(xp, j_inv, _q_block_eager(xp, rho, phi)), j_inv)
+    return _blocks_eager(xp, j_inv, block)
+
+
+def _blocks_eager(xp: Any, j: Any, q: Any) -> Any:
+    """``[[j, q], [0, j]]``: one ``cat`` of the top, the bottom ``j`` padded with zeros, one ``cat``."""
+    return xp.cat([xp.cat([j, q], -1), xp.nn.functional.pad(j, (3, 0))], -2)
+
+
+@eager_form(of=se3_left_jacobian)
+def se3_left_jacobian_eager(xp: Any, xi: Any) -> Any:
+    """:func:`se3_left_jacobian`, eager form (see above)."""
+    return _left_jacobian_eager(xp, xi)
+
+
+@eager_form(of=se3_right_jacobian)
+def se3_right_jacobian_eager(xp: Any, xi: Any) -> Any:
+    """:func:`se3_right_jacobian`, eager form (see above)."""
+    return _left_jacobian_eager(xp, -xi)
+
+
+@eager_form(of=se3_left_jacobian_inverse)
+def se3_left_jacobian_inverse_eager(xp: Any, xi: Any) -> Any:
+    """:func:`se3_left_jacobian_inverse`, eager form (see above)."""
+    return _left_jacobian_inverse_eager(xp, xi)
+
+
+@eager_form(of=se3_right_jacobian_inverse)
+def se3_right_jacobian_inverse_eager(xp: Any, xi: Any) -> Any:
+    """:func:`se3_right_jacobian_inverse`, eager form (see above)."""
+    return _left_jacobian_inverse_eager(xp, -xi)
 
 
 se3_left_jacobian.__doc__ = "The left Jacobian ``J_l(xi)`` of SE(3)." + _JACOBIAN_DOC
