@@ -290,6 +290,88 @@ def quaternion_to_euler_angles(
     return _quaternion_to_euler(xp, "quaternion_to_euler_angles", q, convention, degrees, scalar_first)
 
 
+_Q2E_MAKERS: dict[tuple[str, bool], Any] = {}
+
+
+def _q2e_forms(convention: str, scalar_first: bool) -> Any:
+    """The maker (one function object per convention and order, for ``_core.constants``) of the
+    constants of :func:`quaternion_to_euler_angles_eager`: the identity quaternion in the storage
+    order; the (4, 4) map of the components to Bernardes and Viollet's ``(a, c, b, d)``; the (4, 2) sums
+    ``(a^2 + b^2, c^2 + d^2)``; the (2, 2) map of the half angles to ``(sum - diff, sum + diff)``; the
+    lock's factors ``(2, -+2)``; the slots' signs; the (3, 3) placement of ``(first slot, third slot,
+    middle)`` and its bias (``-pi/2`` on the middle angle of a Tait-Bryan sequence); 0 and 1."""
+    key = (convention, scalar_first)
+    if key in _Q2E_MAKERS:
+        return _Q2E_MAKERS[key]
+    axes, extrinsic = parse_convention("quaternion_to_euler_angles", convention)
+    i, j, k = axes if extrinsic else axes[::-1]
+    proper = i == k
+    if proper:
+        k = 3 - i - j
+    sign = (i - j) * (j - k) * (k - i) // 2
+    w_at, v_at = (0, [1, 2, 3]) if scalar_first else (3, [0, 1, 2])
+
+    def make() -> tuple[list[Any], ...]:
+        identity = [0.0] * 4
+        identity[w_at] = 1.0
+        terms: list[dict[int, float]]  # a, c, b, d as linear forms in the stored components
+        if proper:
+            terms = [{w_at: 1.0}, {v_at[j]: 1.0}, {v_at[i]: 1.0}, {v_at[k]: float(sign)}]
+        else:
+            terms = [
+                {w_at: 1.0, v_at[j]: -1.0},
+                {v_at[j]: 1.0, w_at: 1.0},
+                {v_at[i]: 1.0, v_at[k]: float(sign)},
+                {v_at[k]: float(sign), v_at[i]: -1.0},
+            ]
+        forms = [[terms[col].get(row, 0.0) for col in range(4)] for row in range(4)]
+        pairs = [[1.0, 0.0], [0.0, 1.0], [1.0, 0.0], [0.0, 1.0]]  # (a, c, b, d)^2 -> (ab2, cd2)
+        sums = [[1.0, 1.0], [-1.0, 1.0]]  # (half_sum, half_diff) -> (sum - diff, sum + diff)
+        lock = [2.0, -2.0 if extrinsic else 2.0]
+        slot_sign = [1.0, 1.0 if proper else float(sign)]
+        # (first slot, third slot, middle) -> the angles in the convention's order
+        where_to = [0, 2, 1] if extrinsic else [2, 0, 1]
+        place = [[1.0 if where_to[r] == c else 0.0 for c in range(3)] for r in range(3)]
+        bias = [0.0, 0.0 if proper else -0.5 * math.pi, 0.0]
+        return identity, forms, pairs, sums, lock, slot_sign, place, bias, [0.0], [1.0]
+
+    _Q2E_MAKERS[key] = make
+    return make
+
+
+@eager_form(of=quaternion_to_euler_angles)
+def quaternion_to_euler_angles_eager(
+    xp: Any, q: Any, convention: str, *, degrees: bool = False, scalar_first: bool = True
+) -> Any:
+    """:func:`quaternion_to_euler_angles`, eager form: the same method and selections, each step over
+    a trailing axis of two (the pairs ``(a, b)`` and ``(c, d)``, the two half angles, the two free
+    slots) with constant maps for the convention's permutation (:func:`_q2e_forms`)."""
+    identity, forms, pairs, sums, lock_factors, slot_sign, place, bias, zero, one = constants(
+        xp, q, _q2e_forms(convention, bool(scalar_first))
+    )
+    tiny = xp.finfo(q.dtype).tiny
+    n2 = (q * q).sum(-1, keepdim=True)
+    acbd = xp.matmul(xp.where(n2 < tiny, identity, q), forms)
+    norms2 = xp.matmul(acbd * acbd, pairs)  # (a^2 + b^2, c^2 + d^2)
+    positive = norms2 > 0
+    norms = xp.where(positive, xp.sqrt(xp.where(positive, norms2, one)), zero)  # _algebra.safe_norm
+    ab, cd = norms.unbind(-1)
+    middle = 2.0 * xp.atan2(cd, ab)
+    lock_zero = middle <= GIMBAL_LOCK_TOL
+    free = ~(lock_zero | (middle >= math.pi - GIMBAL_LOCK_TOL))
+    ok = norms2 >= tiny
+    halves = xp.atan2(xp.where(ok, acbd[..., 2:], zero), xp.where(ok, acbd[..., :2], one))
+    twice = halves * lock_factors
+    locked = xp.where(lock_zero, twice[..., 0], twice[..., 1])[..., None]
+    alternative = xp.nn.functional.pad(locked, (0, 1) if convention.islower() else (1, 0))
+    slots = xp.where(free[..., None], xp.matmul(halves, sums), alternative) * slot_sign
+    # into [-pi, pi), as the componentwise form (a shift by a constant: the gradient is untouched)
+    wrapped = xp.where(slots < -math.pi, slots + 2.0 * math.pi, slots)
+    slots = xp.where(slots >= math.pi, slots - 2.0 * math.pi, wrapped)
+    result = xp.matmul(xp.cat([slots, middle[..., None]], -1), place) + bias
+    return result * (180.0 / math.pi) if degrees else result
+
+
 def _degenerate(xp: Any, y: Any, x: Any) -> Any:
     """Where ``atan2(y, x)`` has no finite derivative: ``x^2 + y^2`` below the smallest normal number
     (its derivative divides by that). For a rotation matrix no pair of entries read below gets there
