@@ -302,18 +302,19 @@ def _product(xp: Any, a: Any, b: Any) -> Any:
 
 @eager_form(of=se3_compose)
 def se3_compose_eager(xp: Any, matrix1: Any, matrix2: Any) -> Any:
-    """:func:`se3_compose`, eager form: ``P1 P2`` with ``P = T``'s top rows over ``(0, 0, 0, 1)``
-    (the second: ``addcmul`` of the mask and the bias; the first masked, its bias added after the
-    product, ``baddbmm``), plus ``term`` in every entry (0, or NaN for a pose with a non-finite entry
-    in either input: ``(T1 - T1) T2`` summed). The bottom row is ``(0, 0, 0, 1) P2 = (0, 0, 0, 1)``
-    exactly. Seven operations for one batch dimension (a bare ``matmul`` of poses takes six, with
-    neither the bottom row nor the non-finite rows), eleven more for the backward pass."""
+    """:func:`se3_compose`, eager form: ``P1 P2`` with ``P = T``'s top rows over ``(0, 0, 0, 1)``: the
+    second one ``addcmul`` of the mask and the bias; the first masked with ``term`` in every entry (0,
+    or NaN for a pose with a non-finite entry in either input: ``(T1 - T1) T2`` summed), its bias added
+    by the product (``baddbmm``). The bottom row is ``(0, 0, 0, 1) P2 = (0, 0, 0, 1)`` exactly. Six
+    operations for one batch dimension, as a bare ``matmul`` of poses (which gives neither the bottom
+    row nor the non-finite rows); eight for the backward pass, where the bare product's takes seven
+    (``addcmul``'s derivative is two multiplications)."""
     top, corner, *_ = constants(xp, matrix1, _pose_masks)
     term = cancelling_factor(xp, ((matrix1 - matrix1) * matrix2).sum((-2, -1), keepdim=True))
-    a, b = matrix1 * top, xp.addcmul(corner, matrix2, top)
+    a, b = xp.addcmul(term, matrix1, top), xp.addcmul(corner, matrix2, top)
     if a.ndim == b.ndim == 3 and a.shape[0] == b.shape[0]:
-        return xp.baddbmm(corner + term, a, b)
-    return xp.matmul(a, b) + (corner + term)
+        return xp.baddbmm(corner, a, b)
+    return xp.matmul(a, b) + corner
 
 
 @eager_form(of=se3_inverse)
