@@ -125,7 +125,7 @@ def _qmul(p: list[float], q: list[float]) -> list[float]:
     ]
 
 
-_EULER_MAKERS: dict[tuple[str, bool], Any] = {}
+_EULER_MAKERS: dict[tuple[str, bool | None], Any] = {}
 
 
 def _euler_forms(convention: str, scalar_first: bool | None) -> Any:

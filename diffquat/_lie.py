@@ -415,10 +415,12 @@ def _angle_eager(xp: Any, omega: Any) -> tuple[Any, Any, Any, Any]:
     """:func:`_angle` with a trailing unit axis: ``(small, u for the series, u and t for the closed
     forms)``, each ``(..., 1)``."""
     u = (omega * omega).sum(-1, keepdim=True)
-    # clamps, not wheres with a number (a scalar tensor made per call): each branch reads a finite u
-    # where the other is chosen, SERIES_BELOW itself (the series' value there is finite too)
-    closed = u.clamp_min(SERIES_BELOW)
-    return u < SERIES_BELOW, u.clamp_max(SERIES_BELOW), closed, xp.sqrt(closed)
+    small = u < SERIES_BELOW
+    # Double where by arithmetic with the mask, not wheres with a number (a scalar tensor made per
+    # call) nor clamps (three operations each backward): the series reads 0 where the closed form is
+    # chosen, the closed forms u + SERIES_BELOW (in [1, 2), finite sines) where the series is.
+    closed = xp.add(u, small, alpha=SERIES_BELOW)
+    return small, u * small, closed, xp.sqrt(closed)
 
 
 def _jacobian_coefficients_eager(xp: Any, omega: Any) -> Any:

@@ -780,14 +780,16 @@ def _q_block_eager(xp: Any, rho: Any, phi: Any) -> Any:
     """:func:`_q_block`, eager form: ``(..., 3, 3)``."""
     ang, numerators, factors, k, hat_delta, *tables = constants(xp, rho, _q_constants)
     u = (phi * phi).sum(-1, keepdim=True)
-    uc = u.clamp_min(Q_SERIES_BELOW)
+    small = u < Q_SERIES_BELOW
+    # the double where by the mask, as _lie._angle_eager: the closed forms read u + 4 where unused
+    uc = xp.add(u, small, alpha=Q_SERIES_BELOW)
     t = xp.sqrt(uc)
     s = xp.sin(t * ang)
     tu = t * uc
     z = xp.cat([t, s, s * s, t * xp.cos(t), uc], -1)
     closed = xp.matmul(z, numerators) / (xp.cat([t, uc, tu], -1) * factors * uc)
-    series = _series_eager(xp, u.clamp_max(Q_SERIES_BELOW), tuple(tables))
-    c = xp.where(u < Q_SERIES_BELOW, series, closed)
+    series = _series_eager(xp, u * small, tuple(tables))
+    c = xp.where(small, series, closed)
     d = (phi * rho).sum(-1, keepdim=True)
     left = xp.nn.functional.pad(xp.cat([u, d, d * u], -1), (1, 0), value=1.0)
     right = xp.nn.functional.pad(c, (1, 0), value=1.0)
