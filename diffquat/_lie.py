@@ -450,7 +450,14 @@ def _assemble_eager(xp: Any, omega: Any, coefficients: Any, forms: Any, bias: An
     coefficient of each product ``v_a v_b`` of ``v = (1, w)`` (:func:`_hat_forms`)."""
     (a, *_) = constants(xp, omega, _hat_forms)
     v = xp.nn.functional.pad(omega, (1, 0), value=1.0)
-    g = xp.matmul(coefficients, forms) if bias is None else xp.matmul(coefficients, forms) + bias
+    if bias is None:
+        g = xp.matmul(coefficients, forms)
+    else:
+        g = (
+            xp.addmm(bias, coefficients, forms)
+            if coefficients.ndim == 2
+            else xp.matmul(coefficients, forms) + bias
+        )
     return xp.matmul((v[..., :, None] * v[..., None, :]).flatten(-2) * g, a).unflatten(-1, (3, 3))
 
 
