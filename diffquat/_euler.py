@@ -103,14 +103,10 @@ def euler_angles_to_matrix(
 
 
 # ---------------------------------------------------------------------------------------------------
-# Eager forms (_core.EAGER_FORMS: eager torch outside graph capture). A rotation (or a quaternion) of
-# three elementary rotations is trilinear in the three pairs (cos, sin) of the angles (of the half
-# angles): the outer product of the three pairs (each padded with a 1 for the matrix) times a constant
-# coefficient matrix for the convention, a dozen operations in all.
-
-
-def _matmul3(a: list[list[float]], b: list[list[float]]) -> list[list[float]]:
-    return [[sum(a[i][k] * b[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
+# Eager forms (_core.EAGER_FORMS: eager torch outside graph capture). The quaternion of three
+# elementary rotations is trilinear in the three pairs (cos, sin) of the half angles: their outer
+# product times a constant (8, 4) coefficient matrix for the convention, a dozen operations in all.
+# The matrix takes the registered conversion of that quaternion (the test of the composites' paths).
 
 
 def _qmul(p: list[float], q: list[float]) -> list[float]:
@@ -125,15 +121,14 @@ def _qmul(p: list[float], q: list[float]) -> list[float]:
     ]
 
 
-_EULER_MAKERS: dict[tuple[str, bool | None], Any] = {}
+_EULER_MAKERS: dict[tuple[str, bool], Any] = {}
 
 
-def _euler_forms(convention: str, scalar_first: bool | None) -> Any:
-    """The maker (for ``_core.constants``, one function object per convention) of the coefficient
-    matrix of a convention: the matrix (``scalar_first`` None), (27, 9), row ``9 i + 3 j + k`` the
-    entries of the product of ``(1, cos, sin)[i]`` of the first angle, ``[j]`` of the second, ``[k]``
-    of the third; or the quaternion, (8, 4), of ``(cos, sin)`` of the half angles likewise, in
-    ``scalar_first``'s order."""
+def _euler_forms(convention: str, scalar_first: bool) -> Any:
+    """The maker (for ``_core.constants``, one function object per convention and order) of the
+    convention's (8, 4) coefficients: row ``4 i + 2 j + k`` the quaternion (in ``scalar_first``'s order)
+    of the product of ``(cos, sin)[i]`` of the first half angle, ``[j]`` of the second, ``[k]`` of the
+    third, multiplied in the convention's order."""
     key = (convention, scalar_first)
     if key in _EULER_MAKERS:
         return _EULER_MAKERS[key]
@@ -141,23 +136,6 @@ def _euler_forms(convention: str, scalar_first: bool | None) -> Any:
     order = [2, 1, 0] if extrinsic else [0, 1, 2]  # the angles in the order of the factors
 
     def make() -> tuple[list[Any], ...]:
-        if scalar_first is None:
-            parts = []
-            for a in axes:  # 1, cos and sin's coefficient matrices of the rotation about axis a
-                one = [[1.0 if i == j == a else 0.0 for j in range(3)] for i in range(3)]
-                cos = [[1.0 if i == j != a else 0.0 for j in range(3)] for i in range(3)]
-                sin = [[0.0] * 3 for _ in range(3)]
-                b, c = (a + 1) % 3, (a + 2) % 3
-                sin[c][b], sin[b][c] = 1.0, -1.0
-                parts.append((one, cos, sin))
-            rows = []
-            for i, j, k in ((i, j, k) for i in range(3) for j in range(3) for k in range(3)):
-                pick = (i, j, k)
-                m = parts[order[0]][pick[order[0]]]
-                for n in order[1:]:
-                    m = _matmul3(m, parts[n][pick[n]])
-                rows.append([m[r][c] for r in range(3) for c in range(3)])
-            return (rows,)
         halves = []
         for a in axes:
             unit = [0.0, 0.0, 0.0, 0.0]
@@ -207,17 +185,12 @@ def euler_angles_to_matrix_eager(
     degrees: bool = False,
     to_matrix: Conversion = quaternion_to_matrix,
 ) -> Any:
-    """:func:`euler_angles_to_matrix`, eager form: the product of the three elementary rotations,
-    expanded: the products of ``(1, cos, sin)`` of the three angles times the convention's constant
-    (27, 9) coefficients. Sums of at most four products of sines and cosines: accurate to a few ulps
-    like the route through the quaternion. A non-finite angle makes every entry NaN (``NaN * 0`` in
-    the product)."""
+    """:func:`euler_angles_to_matrix`, eager form: :func:`euler_angles_to_quaternion_eager`, then the
+    registered conversion ``to_matrix`` (the public ``quaternion_to_matrix``'s eager form), as the
+    componentwise composite takes it. A non-finite angle makes every component of the quaternion NaN,
+    and the conversion carries that to every entry."""
     parse_convention("euler_angles_to_matrix", convention)
-    (forms,) = constants(xp, angles, _euler_forms(convention, None))
-    if degrees:
-        angles = angles * (math.pi / 180.0)
-    pairs = xp.nn.functional.pad(xp.stack([xp.cos(angles), xp.sin(angles)], -1), (1, 0), value=1.0)
-    return xp.matmul(_trilinear(xp, pairs), forms).unflatten(-1, (3, 3))
+    return to_matrix(xp, euler_angles_to_quaternion_eager(xp, angles, convention, degrees=degrees))
 
 
 def _quaternion_to_euler(
