@@ -233,8 +233,14 @@ class Backend:
         compute = self.compute_dtype(dtype)
         inputs = [x if x is None or x.dtype == compute else self.astype(x, compute) for x in checked]
         with self.guard(inputs[0]):
-            out = self.choose(core_fn, inputs[0])(self.xp, *inputs, **options)
-            if fname not in _core.NONFINITE_BY_ARITHMETIC:
+            chosen = self.choose(core_fn, inputs[0])
+            out = chosen(self.xp, *inputs, **options)
+            # an eager form may make non-finite rows NaN by its arithmetic where the core function
+            # does not (registered by its own name)
+            if (
+                fname not in _core.NONFINITE_BY_ARITHMETIC
+                and chosen.__name__ not in _core.NONFINITE_BY_ARITHMETIC
+            ):
                 rows = [(x, t) for x, t in zip(inputs, SHAPES[fname].values(), strict=True) if x is not None]
                 out = nonfinite_rows(self.xp, out, rows)
             if compute == dtype:

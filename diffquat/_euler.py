@@ -20,7 +20,10 @@ from ._algebra import hamilton, nonzero_or_identity, safe_norm
 from ._core import (
     Conversion,
     computed_once,
+    constants,
+    eager_form,
     join_quaternion,
+    nonfinite_by_arithmetic,
     op,
     quaternion_to_matrix,
     split_quaternion,
@@ -99,6 +102,97 @@ def euler_angles_to_matrix(
     return to_matrix(xp, q)
 
 
+# ---------------------------------------------------------------------------------------------------
+# Eager forms (_core.EAGER_FORMS: eager torch outside graph capture). The quaternion of three
+# elementary rotations is trilinear in the three pairs (cos, sin) of the half angles: their outer
+# product times a constant (8, 4) coefficient matrix for the convention, a dozen operations in all.
+# The matrix takes the registered conversion of that quaternion (the test of the composites' paths).
+
+
+def _qmul(p: list[float], q: list[float]) -> list[float]:
+    """The Hamilton product of two scalar-first quaternions (Python numbers)."""
+    pw, px, py, pz = p
+    qw, qx, qy, qz = q
+    return [
+        pw * qw - px * qx - py * qy - pz * qz,
+        pw * qx + px * qw + py * qz - pz * qy,
+        pw * qy + py * qw + pz * qx - px * qz,
+        pw * qz + pz * qw + px * qy - py * qx,
+    ]
+
+
+_EULER_MAKERS: dict[tuple[str, bool], Any] = {}
+
+
+def _euler_forms(convention: str, scalar_first: bool) -> Any:
+    """The maker (for ``_core.constants``, one function object per convention and order) of the
+    convention's (8, 4) coefficients: row ``4 i + 2 j + k`` the quaternion (in ``scalar_first``'s order)
+    of the product of ``(cos, sin)[i]`` of the first half angle, ``[j]`` of the second, ``[k]`` of the
+    third, multiplied in the convention's order."""
+    key = (convention, scalar_first)
+    if key in _EULER_MAKERS:
+        return _EULER_MAKERS[key]
+    axes, extrinsic = parse_convention("euler_angles", convention)
+    order = [2, 1, 0] if extrinsic else [0, 1, 2]  # the angles in the order of the factors
+
+    def make() -> tuple[list[Any], ...]:
+        halves = []
+        for a in axes:
+            unit = [0.0, 0.0, 0.0, 0.0]
+            unit[a + 1] = 1.0
+            halves.append(([1.0, 0.0, 0.0, 0.0], unit))
+        rows = []
+        for i, j, k in ((i, j, k) for i in range(2) for j in range(2) for k in range(2)):
+            pick = (i, j, k)
+            q = halves[order[0]][pick[order[0]]]
+            for n in order[1:]:
+                q = _qmul(q, halves[n][pick[n]])
+            rows.append(q if scalar_first else q[1:] + q[:1])
+        return (rows,)
+
+    _EULER_MAKERS[key] = make
+    return make
+
+
+def _trilinear(xp: Any, pairs: Any) -> Any:
+    """The products ``a_i b_j c_k`` of the rows ``a, b, c`` of ``pairs`` ``(..., 3, n)``:
+    ``(..., n^3)``, index ``n^2 i + n j + k``."""
+    a, b, c = pairs.unbind(-2)
+    return ((a[..., :, None] * b[..., None, :]).flatten(-2)[..., :, None] * c[..., None, :]).flatten(-2)
+
+
+@nonfinite_by_arithmetic
+@eager_form(of=euler_angles_to_quaternion)
+def euler_angles_to_quaternion_eager(
+    xp: Any, angles: Any, convention: str, *, degrees: bool = False, scalar_first: bool = True
+) -> Any:
+    """:func:`euler_angles_to_quaternion`, eager form: the products of ``(cos, sin)`` of the three
+    half angles times the convention's constant (8, 4) coefficients (the same Hamilton products,
+    expanded). A non-finite angle makes every component NaN (its cosine and sine reach every column of
+    the product: ``NaN * 0``)."""
+    (forms,) = constants(xp, angles, _euler_forms(convention, bool(scalar_first)))
+    half = angles * (math.pi / 360.0 if degrees else 0.5)
+    return xp.matmul(_trilinear(xp, xp.stack([xp.cos(half), xp.sin(half)], -1)), forms)
+
+
+@nonfinite_by_arithmetic
+@eager_form(of=euler_angles_to_matrix)
+def euler_angles_to_matrix_eager(
+    xp: Any,
+    angles: Any,
+    convention: str,
+    *,
+    degrees: bool = False,
+    to_matrix: Conversion = quaternion_to_matrix,
+) -> Any:
+    """:func:`euler_angles_to_matrix`, eager form: :func:`euler_angles_to_quaternion_eager`, then the
+    registered conversion ``to_matrix`` (the public ``quaternion_to_matrix``'s eager form), as the
+    componentwise composite takes it. A non-finite angle makes every component of the quaternion NaN,
+    and the conversion carries that to every entry."""
+    parse_convention("euler_angles_to_matrix", convention)
+    return to_matrix(xp, euler_angles_to_quaternion_eager(xp, angles, convention, degrees=degrees))
+
+
 def _quaternion_to_euler(
     xp: Any, fname: str, q: Any, convention: str, degrees: bool, scalar_first: bool
 ) -> Any:
@@ -167,6 +261,88 @@ def quaternion_to_euler_angles(
         as scipy; no warning, no error, and finite gradients (the angles jump there, as they must).
     """
     return _quaternion_to_euler(xp, "quaternion_to_euler_angles", q, convention, degrees, scalar_first)
+
+
+_Q2E_MAKERS: dict[tuple[str, bool], Any] = {}
+
+
+def _q2e_forms(convention: str, scalar_first: bool) -> Any:
+    """The maker (one function object per convention and order, for ``_core.constants``) of the
+    constants of :func:`quaternion_to_euler_angles_eager`: the identity quaternion in the storage
+    order; the (4, 4) map of the components to Bernardes and Viollet's ``(a, c, b, d)``; the (4, 2) sums
+    ``(a^2 + b^2, c^2 + d^2)``; the (2, 2) map of the half angles to ``(sum - diff, sum + diff)``; the
+    lock's factors ``(2, -+2)``; the slots' signs; the (3, 3) placement of ``(first slot, third slot,
+    middle)`` and its bias (``-pi/2`` on the middle angle of a Tait-Bryan sequence); 0 and 1."""
+    key = (convention, scalar_first)
+    if key in _Q2E_MAKERS:
+        return _Q2E_MAKERS[key]
+    axes, extrinsic = parse_convention("quaternion_to_euler_angles", convention)
+    i, j, k = axes if extrinsic else axes[::-1]
+    proper = i == k
+    if proper:
+        k = 3 - i - j
+    sign = (i - j) * (j - k) * (k - i) // 2
+    w_at, v_at = (0, [1, 2, 3]) if scalar_first else (3, [0, 1, 2])
+
+    def make() -> tuple[list[Any], ...]:
+        identity = [0.0] * 4
+        identity[w_at] = 1.0
+        terms: list[dict[int, float]]  # a, c, b, d as linear forms in the stored components
+        if proper:
+            terms = [{w_at: 1.0}, {v_at[j]: 1.0}, {v_at[i]: 1.0}, {v_at[k]: float(sign)}]
+        else:
+            terms = [
+                {w_at: 1.0, v_at[j]: -1.0},
+                {v_at[j]: 1.0, w_at: 1.0},
+                {v_at[i]: 1.0, v_at[k]: float(sign)},
+                {v_at[k]: float(sign), v_at[i]: -1.0},
+            ]
+        forms = [[terms[col].get(row, 0.0) for col in range(4)] for row in range(4)]
+        pairs = [[1.0, 0.0], [0.0, 1.0], [1.0, 0.0], [0.0, 1.0]]  # (a, c, b, d)^2 -> (ab2, cd2)
+        sums = [[1.0, 1.0], [-1.0, 1.0]]  # (half_sum, half_diff) -> (sum - diff, sum + diff)
+        lock = [2.0, -2.0 if extrinsic else 2.0]
+        slot_sign = [1.0, 1.0 if proper else float(sign)]
+        # (first slot, third slot, middle) -> the angles in the convention's order
+        where_to = [0, 2, 1] if extrinsic else [2, 0, 1]
+        place = [[1.0 if where_to[r] == c else 0.0 for c in range(3)] for r in range(3)]
+        bias = [0.0, 0.0 if proper else -0.5 * math.pi, 0.0]
+        return identity, forms, pairs, sums, lock, slot_sign, place, bias, [0.0], [1.0]
+
+    _Q2E_MAKERS[key] = make
+    return make
+
+
+@eager_form(of=quaternion_to_euler_angles)
+def quaternion_to_euler_angles_eager(
+    xp: Any, q: Any, convention: str, *, degrees: bool = False, scalar_first: bool = True
+) -> Any:
+    """:func:`quaternion_to_euler_angles`, eager form: the same method and selections, each step over
+    a trailing axis of two (the pairs ``(a, b)`` and ``(c, d)``, the two half angles, the two free
+    slots) with constant maps for the convention's permutation (:func:`_q2e_forms`)."""
+    identity, forms, pairs, sums, lock_factors, slot_sign, place, bias, zero, one = constants(
+        xp, q, _q2e_forms(convention, bool(scalar_first))
+    )
+    tiny = xp.finfo(q.dtype).tiny
+    n2 = (q * q).sum(-1, keepdim=True)
+    acbd = xp.matmul(xp.where(n2 < tiny, identity, q), forms)
+    norms2 = xp.matmul(acbd * acbd, pairs)  # (a^2 + b^2, c^2 + d^2)
+    positive = norms2 > 0
+    norms = xp.where(positive, xp.sqrt(xp.where(positive, norms2, one)), zero)  # _algebra.safe_norm
+    ab, cd = norms.unbind(-1)
+    middle = 2.0 * xp.atan2(cd, ab)
+    lock_zero = middle <= GIMBAL_LOCK_TOL
+    free = ~(lock_zero | (middle >= math.pi - GIMBAL_LOCK_TOL))
+    ok = norms2 >= tiny
+    halves = xp.atan2(xp.where(ok, acbd[..., 2:], zero), xp.where(ok, acbd[..., :2], one))
+    twice = halves * lock_factors
+    locked = xp.where(lock_zero, twice[..., 0], twice[..., 1])[..., None]
+    alternative = xp.nn.functional.pad(locked, (0, 1) if convention.islower() else (1, 0))
+    slots = xp.where(free[..., None], xp.matmul(halves, sums), alternative) * slot_sign
+    # into [-pi, pi), as the componentwise form (a shift by a constant: the gradient is untouched)
+    wrapped = xp.where(slots < -math.pi, slots + 2.0 * math.pi, slots)
+    slots = xp.where(slots >= math.pi, slots - 2.0 * math.pi, wrapped)
+    result = xp.matmul(xp.cat([slots, middle[..., None]], -1), place) + bias
+    return result * (180.0 / math.pi) if degrees else result
 
 
 def _degenerate(xp: Any, y: Any, x: Any) -> Any:

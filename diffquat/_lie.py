@@ -375,6 +375,165 @@ def so3_right_jacobian_inverse(xp: Any, omega: Any) -> Any:
     return _assemble(xp, omega, p, 0.5, r)
 
 
+# ---------------------------------------------------------------------------------------------------
+# Eager forms of the Jacobians (_core.EAGER_FORMS: eager torch outside graph capture). The same
+# coefficients (series below SERIES_BELOW, the same closed forms above), each evaluated for all its
+# columns at once over a trailing axis: Horner's scheme as one ``addcmul`` per term for the three
+# series together, the closed forms as one ``sin`` of (t, t/2). The matrix ``p I + q W + r w w^T`` is
+# then linear in the outer product of ``v = (1, w)``: ``(v v^T) * (coefficients @ E)`` contracted with
+# a constant (16, 9) matrix (:func:`_hat_forms`). About 30 operations, where the componentwise
+# formulas take 53-66.
+
+# sin t / t = 1 - u/6 + u^2/120 - ...: p as its own series (no cancellation)
+_P_SERIES = tuple((-1) ** k / math.factorial(2 * k + 1) for k in range(12))
+# (t/2) cot(t/2) = 1 - u C(u): the inverse's p as its own series
+_INVERSE_P_SERIES = (1.0, *(-c for c in _C_SERIES[:11]))
+
+
+def _hat_forms() -> tuple[list[Any], ...]:
+    """Constants of :func:`_assemble_eager`: ``A`` (16, 9), row ``4 a + b`` the entries that
+    ``v_a v_b`` (``v = (1, w)``) feeds in ``I`` (a = b = 0), ``hat(w)`` (a = 0 < b) and ``w w^T``
+    (a, b > 0); and the maps ``E`` of the coefficients to the 16 products: ``(p, q, r)`` (left),
+    ``(p, -q, r)`` (right), ``(p, r)`` with the bias ``-+1/2`` on ``hat(w)`` (left and right inverses)."""
+    a = [[0.0] * 9 for _ in range(16)]
+    for k in (0, 4, 8):
+        a[0][k] = 1.0
+    # hat(w) = [[0, -z, y], [z, 0, -x], [-y, x, 0]], row-major
+    for b, entries in ((1, ((5, -1.0), (7, 1.0))), (2, ((2, 1.0), (6, -1.0))), (3, ((1, -1.0), (3, 1.0)))):
+        for k, sign in entries:
+            a[b][k] = sign
+    for i in range(3):
+        for j in range(3):
+            a[4 * (i + 1) + j + 1][3 * i + j] = 1.0
+    kind = [0] + [1] * 3 + [1 if b == 0 else 2 for a_ in range(1, 4) for b in range(4)]
+    left = [[1.0 if kind[j] == c else 0.0 for j in range(16)] for c in range(3)]
+    right = [[(-1.0 if c == 1 else 1.0) if kind[j] == c else 0.0 for j in range(16)] for c in range(3)]
+    inverse = [left[0], left[2]]
+    bias_left = [-0.5 if kind[j] == 1 else 0.0 for j in range(16)]
+    bias_right = [0.5 if kind[j] == 1 else 0.0 for j in range(16)]
+    return a, left, right, inverse, bias_left, bias_right
+
+
+_EPS = (1.1920928955078125e-07, 2.220446049250313e-16)  # float32's and float64's (the compute dtypes)
+
+
+def _series_tables(*series: tuple[float, ...], below: float = SERIES_BELOW) -> tuple[list[Any], ...]:
+    """For float32, then float64: the constant terms, the powers ``1, ..., n - 1`` and the
+    ``(n - 1, m)`` table of the next terms of ``m`` series, ``n`` the most any of them needs in that
+    dtype (:func:`_truncated`: a quarter of an ulp at ``below``; more terms only round closer)."""
+    out: list[list[Any]] = []
+    for eps in _EPS:
+        n = max(len(_truncated(s, eps, below)) for s in series)
+        out += [
+            [s[0] for s in series],
+            [float(k) for k in range(1, n)],
+            [[s[k] for s in series] for k in range(1, n)],
+        ]
+    return tuple(out)
+
+
+def _jacobian_constants() -> tuple[list[Any], ...]:
+    """``(1, 1/2)`` (the angles whose sines the closed forms read), ``(1, 0)`` and ``(0, 2)`` (the
+    numerators ``sin t`` and ``2 sin^2(t/2)``), and the series tables of ``(p, q, r)``."""
+    return [1.0, 0.5], [1.0, 0.0], [0.0, 2.0], *_series_tables(_P_SERIES, _A_SERIES, _B_SERIES)
+
+
+def _inverse_constants() -> tuple[list[Any], ...]:
+    """The series tables of the inverse's ``(p, r)``."""
+    return _series_tables(_INVERSE_P_SERIES, _C_SERIES)
+
+
+def _series_eager(xp: Any, u: Any, tables: tuple[Any, ...]) -> Any:
+    """The series of :func:`_series_tables` at ``u`` ``(..., 1)``: ``(..., m)``, the powers ``u^k``
+    (one ``pow``) times the table plus the constant terms (one ``addmm``), where Horner's scheme takes
+    two operations a term, forward and backward. Below ``SERIES_BELOW`` (``u < 1``) the terms fall,
+    so the sum of the products is as accurate as Horner's. No power 0: ``pow``'s derivative in the
+    base at ``u = 0`` is 0 by a selection, whose discarded branch ``0 * u^-1`` is NaN in the second
+    derivative."""
+    first, powers, table = tables[:3] if u.dtype.itemsize <= 4 else tables[3:]
+    if u.ndim == 2:
+        return xp.addmm(first, u**powers, table)
+    return xp.matmul(u**powers, table) + first
+
+
+def _angle_eager(xp: Any, omega: Any) -> tuple[Any, Any, Any, Any]:
+    """:func:`_angle` with a trailing unit axis: ``(small, u for the series, u and t for the closed
+    forms)``, each ``(..., 1)``."""
+    u = (omega * omega).sum(-1, keepdim=True)
+    small = u < SERIES_BELOW
+    # Double where by arithmetic with the mask, not wheres with a number (a scalar tensor made per
+    # call) nor clamps (three operations each backward): the series reads 0 where the closed form is
+    # chosen, the closed forms u + SERIES_BELOW (in [1, 2), finite sines) where the series is.
+    closed = xp.add(u, small, alpha=SERIES_BELOW)
+    return small, u * small, closed, xp.sqrt(closed)
+
+
+def _jacobian_coefficients_eager(xp: Any, omega: Any) -> Any:
+    """:func:`_jacobian_coefficients` as one ``(..., 3)`` array ``(p, q, r)``."""
+    ang, num_a, num_b, *tables = constants(xp, omega, _jacobian_constants)
+    small, us, uc, t = _angle_eager(xp, omega)
+    s = xp.sin(t * ang)
+    # (sin t, 2 sin^2(t/2)) / (t, t^2), and (t - sin t) / t^3 with sin t itself (Sterbenz)
+    pq = s * xp.addcmul(num_a, s, num_b) / xp.cat([t, uc], -1)
+    closed = xp.cat([pq, (t - s[..., :1]) / (t * uc)], -1)
+    return xp.where(small, _series_eager(xp, us, tuple(tables)), closed)
+
+
+def _inverse_coefficients_eager(xp: Any, omega: Any) -> Any:
+    """:func:`_inverse_coefficients` as one ``(..., 2)`` array ``(p, r)``."""
+    tables = constants(xp, omega, _inverse_constants)
+    small, us, uc, t = _angle_eager(xp, omega)
+    # cos / sin, not 1 / tan: at a half-turn (t/2 = pi/2) tan's derivatives are of size 1e16 and the
+    # second derivative of (t/2) / tan(t/2) cancels them to O(1), losing every digit (measured)
+    half = 0.5 * t
+    p = half * xp.cos(half) / xp.sin(half)
+    return xp.where(small, _series_eager(xp, us, tables), xp.cat([p, (1.0 - p) / uc], -1))
+
+
+def _assemble_eager(xp: Any, omega: Any, coefficients: Any, forms: Any, bias: Any = None) -> Any:
+    """``p I + q hat(w) + r w w^T`` of :func:`_assemble`, from ``coefficients @ forms (+ bias)``, the
+    coefficient of each product ``v_a v_b`` of ``v = (1, w)`` (:func:`_hat_forms`)."""
+    (a, *_) = constants(xp, omega, _hat_forms)
+    v = xp.nn.functional.pad(omega, (1, 0), value=1.0)
+    if bias is None:
+        g = xp.matmul(coefficients, forms)
+    else:
+        g = (
+            xp.addmm(bias, coefficients, forms)
+            if coefficients.ndim == 2
+            else xp.matmul(coefficients, forms) + bias
+        )
+    return xp.matmul((v[..., :, None] * v[..., None, :]).flatten(-2) * g, a).unflatten(-1, (3, 3))
+
+
+@eager_form(of=so3_left_jacobian)
+def so3_left_jacobian_eager(xp: Any, omega: Any) -> Any:
+    """:func:`so3_left_jacobian`, eager form (see above)."""
+    _, left, *_ = constants(xp, omega, _hat_forms)
+    return _assemble_eager(xp, omega, _jacobian_coefficients_eager(xp, omega), left)
+
+
+@eager_form(of=so3_right_jacobian)
+def so3_right_jacobian_eager(xp: Any, omega: Any) -> Any:
+    """:func:`so3_right_jacobian`, eager form (see above)."""
+    _, _, right, *_ = constants(xp, omega, _hat_forms)
+    return _assemble_eager(xp, omega, _jacobian_coefficients_eager(xp, omega), right)
+
+
+@eager_form(of=so3_left_jacobian_inverse)
+def so3_left_jacobian_inverse_eager(xp: Any, omega: Any) -> Any:
+    """:func:`so3_left_jacobian_inverse`, eager form (see above)."""
+    _, _, _, inverse, bias, _ = constants(xp, omega, _hat_forms)
+    return _assemble_eager(xp, omega, _inverse_coefficients_eager(xp, omega), inverse, bias)
+
+
+@eager_form(of=so3_right_jacobian_inverse)
+def so3_right_jacobian_inverse_eager(xp: Any, omega: Any) -> Any:
+    """:func:`so3_right_jacobian_inverse`, eager form (see above)."""
+    _, _, _, inverse, _, bias = constants(xp, omega, _hat_forms)
+    return _assemble_eager(xp, omega, _inverse_coefficients_eager(xp, omega), inverse, bias)
+
+
 so3_left_jacobian.__doc__ = "The left Jacobian ``J_l(w)`` of SO(3)." + _JACOBIAN_DOC + _ACCURACY_DOC
 so3_right_jacobian.__doc__ = (
     "The right Jacobian ``J_r(w) = J_l(-w)`` of SO(3)." + _JACOBIAN_DOC + _ACCURACY_DOC

@@ -40,6 +40,8 @@ from ._core import (
     Conversion,
     cancelling_factor,
     computed_once,
+    constants,
+    eager_form,
     matrix_to_quaternion,
     nonfinite_by_arithmetic,
     op,
@@ -52,10 +54,16 @@ from ._core import (
 from ._lie import (
     _B_SERIES,
     _assemble,
+    _assemble_eager,
     _components,
+    _hat_forms,
     _inverse_coefficients,
+    _inverse_coefficients_eager,
     _jacobian_coefficients,
+    _jacobian_coefficients_eager,
     _series,
+    _series_eager,
+    _series_tables,
     check_side,
     so3_hat,
     so3_vee,
@@ -129,6 +137,22 @@ def se3_from_rotation_translation(xp: Any, rotation: Any, translation: Any) -> A
     batch = tuple(xp.broadcast_shapes(tuple(r.shape[:-2]), tuple(t.shape[:-2])))
     r, t = xp.broadcast_to(r, (*batch, 3, 3)), xp.broadcast_to(t, (*batch, 3, 1))
     return _with_bottom(xp, xp.concat([r, t], axis=-1))
+
+
+@nonfinite_by_arithmetic
+@eager_form(of=se3_from_rotation_translation)
+def se3_from_rotation_translation_eager(xp: Any, rotation: Any, translation: Any) -> Any:
+    """:func:`se3_from_rotation_translation`, eager form: ``[R | t]`` (one ``cat``), padded with a zero
+    bottom row, plus the bias ``e4 e4^T`` and the non-finite term ``[R | t] - [R | t]`` summed (0, or
+    NaN in every entry of a row with a non-finite input)."""
+    _, corner, *_ = constants(xp, rotation, _pose_masks)
+    t = translation[..., None]
+    if rotation.shape[:-2] != t.shape[:-2]:
+        batch = tuple(xp.broadcast_shapes(tuple(rotation.shape[:-2]), tuple(t.shape[:-2])))
+        rotation, t = xp.broadcast_to(rotation, (*batch, 3, 3)), xp.broadcast_to(t, (*batch, 3, 1))
+    top = xp.cat([rotation, t], -1)
+    term = cancelling_factor(xp, (top - top).sum((-2, -1), keepdim=True))
+    return xp.nn.functional.pad(top, (0, 0, 0, 1)) + (corner + term)
 
 
 @op(matrix=(4, 4))
@@ -252,6 +276,69 @@ def se3_apply(xp: Any, matrix: Any, points: Any) -> Any:
     return small_matmul(xp, m[..., :3, :], xp.concat([p + term, term + xp.ones_like(term)], axis=-2))[..., 0]
 
 
+# Eager forms (_core.EAGER_FORMS: eager torch outside graph capture) of composing, inverting and
+# applying: one batched product of 4x4 matrices whose bottom rows are set by a constant mask and bias
+# (one ``addcmul`` each), and the non-finite term of the componentwise forms, from the inputs (so that
+# a finite pose whose result overflows keeps the componentwise result), added once.
+
+
+def _pose_masks() -> tuple[list[Any], ...]:
+    """(4, 4) constants: the mask of the top rows, the bias ``e4 e4^T`` (the bottom row (0, 0, 0, 1)),
+    the mask of the top-left 3x3 block, the negated translation column, the identity."""
+    top = [[1.0] * 4 if i < 3 else [0.0] * 4 for i in range(4)]
+    corner = [[1.0 if i == j == 3 else 0.0 for j in range(4)] for i in range(4)]
+    block = [[1.0 if i < 3 and j < 3 else 0.0 for j in range(4)] for i in range(4)]
+    column = [[-1.0 if i < 3 and j == 3 else 0.0 for j in range(4)] for i in range(4)]
+    eye = [[1.0 if i == j else 0.0 for j in range(4)] for i in range(4)]
+    return top, corner, block, column, eye
+
+
+def _product(xp: Any, a: Any, b: Any) -> Any:
+    """``a @ b`` of ``(..., n, k)`` and ``(..., k, m)``: ``bmm`` (one operation) where both are
+    ``(B, n, k)`` with one ``B``, else ``matmul``, which broadcasts (a few views more)."""
+    if a.ndim == b.ndim == 3 and a.shape[0] == b.shape[0]:
+        return xp.bmm(a, b)
+    return xp.matmul(a, b)
+
+
+@eager_form(of=se3_compose)
+def se3_compose_eager(xp: Any, matrix1: Any, matrix2: Any) -> Any:
+    """:func:`se3_compose`, eager form: ``P1 P2`` with ``P = T``'s top rows over ``(0, 0, 0, 1)``: the
+    second one ``addcmul`` of the mask and the bias; the first masked with ``term`` in every entry (0,
+    or NaN for a pose with a non-finite entry in either input: ``(T1 - T1) T2`` summed), its bias added
+    by the product (``baddbmm``). The bottom row is ``(0, 0, 0, 1) P2 = (0, 0, 0, 1)`` exactly. Six
+    operations for one batch dimension, as a bare ``matmul`` of poses (which gives neither the bottom
+    row nor the non-finite rows); eight for the backward pass, where the bare product's takes seven
+    (``addcmul``'s derivative is two multiplications)."""
+    top, corner, *_ = constants(xp, matrix1, _pose_masks)
+    term = cancelling_factor(xp, ((matrix1 - matrix1) * matrix2).sum((-2, -1), keepdim=True))
+    a, b = xp.addcmul(term, matrix1, top), xp.addcmul(corner, matrix2, top)
+    if a.ndim == b.ndim == 3 and a.shape[0] == b.shape[0]:
+        return xp.baddbmm(corner, a, b)
+    return xp.matmul(a, b) + corner
+
+
+@eager_form(of=se3_inverse)
+def se3_inverse_eager(xp: Any, matrix: Any) -> Any:
+    """:func:`se3_inverse`, eager form: ``[[R^T, 0], [0, 1]] [[I, -t], [0, 1]]``, each factor one
+    ``addcmul`` of ``T`` (transposed, for the first) with a constant mask and bias; the non-finite term
+    ``T - T`` summed rides on the first factor's bias. Six operations for one batch dimension."""
+    _, corner, block, column, eye = constants(xp, matrix, _pose_masks)
+    term = cancelling_factor(xp, (matrix - matrix).sum((-2, -1), keepdim=True))
+    return _product(xp, xp.addcmul(corner + term, matrix.mT, block), xp.addcmul(eye, matrix, column))
+
+
+@eager_form(of=se3_apply)
+def se3_apply_eager(xp: Any, matrix: Any, points: Any) -> Any:
+    """:func:`se3_apply`, eager form: ``T (p, 1)`` as a product summed over the last axis (it
+    broadcasts any batch shapes), plus the non-finite term: ``(T - T) (p, 1)`` summed over all four
+    rows, so that a non-finite entry of either input, the bottom row's included, makes the whole
+    result NaN. Ten operations for one batch dimension."""
+    ph = xp.nn.functional.pad(points, (0, 1), value=1.0)[..., None, :]
+    term = cancelling_factor(xp, ((matrix - matrix) * ph).sum((-2, -1)))
+    return (matrix * ph).sum(-1)[..., :3] + term[..., None]
+
+
 # ---------------------------------------------------------------------------------------------------
 # hat and vee, exp and log
 
@@ -286,6 +373,44 @@ def se3_vee(xp: Any, matrix: Any) -> Any:
     return xp.concat([matrix[..., :3, 3], so3_vee(xp, matrix[..., :3, :3])], axis=-1)
 
 
+# Eager forms of the linear maps: one product of the flattened input with a constant matrix (two
+# operations). The backends' rule makes non-finite rows NaN after them: through the product an
+# infinity stays infinite in the entries it feeds.
+
+
+def _linear_forms() -> tuple[list[Any], ...]:
+    """(6, 16) ``se3_hat``, (16, 6) ``se3_vee``, (6, 36) ``se3_ad``: the coefficient of each input
+    entry in each output entry (row-major)."""
+    skew = {0: ((2, 1, 1.0), (1, 2, -1.0)), 1: ((0, 2, 1.0), (2, 0, -1.0)), 2: ((1, 0, 1.0), (0, 1, -1.0))}
+    hat = [[0.0] * 16 for _ in range(6)]
+    vee = [[0.0] * 6 for _ in range(16)]
+    ad = [[0.0] * 36 for _ in range(6)]
+    for k in range(3):
+        hat[k][4 * k + 3] = 1.0
+        vee[4 * k + 3][k] = 1.0
+        for row, col, sign in skew[k]:
+            hat[3 + k][4 * row + col] = sign
+            vee[4 * row + col][3 + k] = 0.5 * sign
+            for r0, c0, source in ((0, 0, 3 + k), (0, 3, k), (3, 3, 3 + k)):
+                ad[source][6 * (r0 + row) + c0 + col] = sign
+    return hat, vee, ad
+
+
+@eager_form(of=se3_hat)
+def se3_hat_eager(xp: Any, xi: Any) -> Any:
+    """:func:`se3_hat`, eager form: ``xi`` times a constant (6, 16) matrix."""
+    hat, _, _ = constants(xp, xi, _linear_forms)
+    return xp.matmul(xi, hat).unflatten(-1, (4, 4))
+
+
+@eager_form(of=se3_vee)
+def se3_vee_eager(xp: Any, matrix: Any) -> Any:
+    """:func:`se3_vee`, eager form: the 16 entries times a constant (16, 6) matrix (``0.5 m_21 - 0.5
+    m_12``: halving is exact, the same numbers as ``0.5 (m_21 - m_12)``)."""
+    _, vee, _ = constants(xp, matrix, _linear_forms)
+    return xp.matmul(matrix.flatten(-2), vee)
+
+
 def _left_jacobian_times(xp: Any, phi: Any, v: Any) -> Any:
     """``J_l(phi) v = p v + q phi x v + r phi (phi . v)`` for vectors ``v`` ``(..., 3)``."""
     p, q, r = computed_once(xp, _jacobian_coefficients(xp, phi))
@@ -312,6 +437,65 @@ def se3_exp(xp: Any, xi: Any, *, to_matrix: Conversion = unit_quaternion_to_matr
     rotation = axis_angle_to_matrix(xp, phi, to_matrix=to_matrix)
     translation = _left_jacobian_times(xp, phi, rho)
     return _with_bottom(xp, xp.concat([rotation, _column(translation)], axis=-1))
+
+
+def _exp_forms() -> tuple[list[Any], ...]:
+    """Constants of :func:`se3_exp_eager`: ``E`` (3, 64), the coefficient (of ``p, q, r``) of each
+    product ``v_a v_b y_c`` (``v = (1, phi)``, ``y = (1, rho)``, index ``16 a + 4 b + c``); ``A``
+    (64, 16), the entries of the pose (row-major) each product feeds; the bias, the identity.
+
+    ``R = I + p hat(phi) + q hat(phi)^2`` with ``hat(phi)^2 = phi phi^T - |phi|^2 I``, and
+    ``t = J_l(phi) rho = p rho + q phi x rho + r phi (phi . rho)``: every entry is linear in these
+    products, with one of ``p, q, r`` for each."""
+    e = [[0.0] * 64 for _ in range(3)]
+    a = [[0.0] * 16 for _ in range(64)]
+    # hat(w) = [[0, -z, y], [z, 0, -x], [-y, x, 0]]: (row, column, sign) per component of w
+    hat = {0: ((1, 2, -1.0), (2, 1, 1.0)), 1: ((0, 2, 1.0), (2, 0, -1.0)), 2: ((0, 1, -1.0), (1, 0, 1.0))}
+    for i, j in ((i, j) for i in range(4) for j in range(4)):
+        rot, trans = 16 * i + 4 * j, [16 * i + 4 * j + c for c in range(1, 4)]
+        if i == 0 and j > 0:  # hat(phi) in R (p), phi x rho in t (q)
+            e[0][rot] = 1.0
+            for row, col, sign in hat[j - 1]:
+                a[rot][4 * row + col] = sign
+            for c, f in enumerate(trans):
+                e[1][f] = 1.0
+                for row, col, sign in hat[j - 1]:
+                    if col == c:  # (phi x rho)_row = sum hat(phi)[row, col] rho_col
+                        a[f][4 * row + 3] = sign
+        elif i > 0 and j > 0:  # phi phi^T - |phi|^2 I in R (q), phi (phi . rho) in t (r)
+            e[1][rot] = 1.0
+            a[rot][4 * (i - 1) + j - 1] += 1.0
+            if i == j:
+                for k in range(3):
+                    a[rot][5 * k] -= 1.0
+            e[2][trans[j - 1]] = 1.0
+            a[trans[j - 1]][4 * (i - 1) + 3] = 1.0
+        elif i == 0 and j == 0:  # rho in t (p)
+            for c, f in enumerate(trans):
+                e[0][f] = 1.0
+                a[f][4 * c + 3] = 1.0
+    bias = [1.0 if k in (0, 5, 10, 15) else 0.0 for k in range(16)]
+    return e, a, bias
+
+
+@nonfinite_by_arithmetic
+@eager_form(of=se3_exp)
+def se3_exp_eager(xp: Any, xi: Any, *, to_matrix: Conversion = unit_quaternion_to_matrix) -> Any:
+    """:func:`se3_exp`, eager form: the coefficients ``(p, q, r)`` of ``J_l(phi)``
+    (``_lie._jacobian_coefficients_eager``: the same series and closed forms) and the products of
+    ``(1, phi)``, ``(1, phi)`` and ``(1, rho)``, contracted with constant forms (:func:`_exp_forms`)
+    into the 16 entries at once, the bottom row ``(0, 0, 0, 1)`` by the bias alone. Rodrigues' formula
+    for the rotation (the componentwise form goes through the unit quaternion; both are accurate to a
+    few ulps of 1). A non-finite twist makes every entry NaN: the coefficients or the products carry
+    it to every column of the contraction (``NaN * 0``)."""
+    e, a, bias = constants(xp, xi, _exp_forms)
+    phi = xi[..., 3:]
+    v = xp.nn.functional.pad(phi, (1, 0), value=1.0)
+    y = xp.nn.functional.pad(xi, (1, 0), value=1.0)[..., :4]
+    f = ((v[..., :, None] * v[..., None, :]).flatten(-2)[..., :, None] * y[..., None, :]).flatten(-2)
+    fg = f * xp.matmul(_jacobian_coefficients_eager(xp, phi), e)
+    out = xp.addmm(bias, fg, a) if fg.ndim == 2 else xp.matmul(fg, a) + bias
+    return out.unflatten(-1, (4, 4))
 
 
 def _log(xp: Any, matrix: Any, to_quaternion: Conversion) -> Any:
@@ -345,6 +529,42 @@ def se3_log(xp: Any, matrix: Any, *, to_quaternion: Conversion = matrix_to_quate
 # Adjoints
 
 
+# atan2(s, w) / s as a series in x = s^2 / w^2 below x ~ 1e-4 (w > 0.99 there): (1/w) (1 - x/3 + x^2/5
+# - ...); the first term left out, x^5 / 11 < 1e-21, is below float64's rounding. Above, the closed
+# form (a quotient, no cancellation); the series keeps its derivatives finite at s = 0.
+_LOG_SERIES_BELOW = 1e-4
+
+
+def _log_constants() -> tuple[list[Any], ...]:
+    """2 (the constant term of 2 atan2(s, w) / s, times w), the powers 1-4 and their terms."""
+    return [2.0], [1.0, 2.0, 3.0, 4.0], [[2.0 * (-1) ** k / (2 * k + 1)] for k in range(1, 5)]
+
+
+@eager_form(of=se3_log)
+def se3_log_eager(xp: Any, matrix: Any, *, to_quaternion: Conversion = matrix_to_quaternion) -> Any:
+    """:func:`se3_log`, eager form: ``phi = 2 atan2(|v|, w) v / |v|`` of the unit quaternion
+    ``(w, v)`` (``w >= 0``) of ``R`` (the conversion the componentwise form reads too), and
+    ``rho = J_l(phi)^-1 t`` from ``_lie``'s eager inverse: ``(p, r)`` in one array, the matrix from
+    constant forms, one product with ``t``."""
+    return _log_eager(xp, matrix, to_quaternion)
+
+
+def _log_eager(xp: Any, matrix: Any, to_quaternion: Conversion) -> Any:
+    """:func:`se3_log_eager`'s twist, for the eager forms that take a logarithm."""
+    first, powers, table = constants(xp, matrix, _log_constants)
+    q = to_quaternion(xp, matrix[..., :3, :3])
+    w, v = q[..., :1], q[..., 1:]
+    n2 = (v * v).sum(-1, keepdim=True)
+    # double where by clamps: each branch reads a finite value where the other one is chosen
+    ws, s = w.clamp_min(0.5), xp.sqrt(n2.clamp_min(_LOG_SERIES_BELOW))
+    x = n2.clamp_max(_LOG_SERIES_BELOW) / (ws * ws)
+    series = (xp.matmul(x**powers, table) + first) / ws
+    phi = xp.where(n2 < _LOG_SERIES_BELOW, series, 2.0 * xp.atan2(s, w) / s) * v
+    _, _, _, inverse, bias, _ = constants(xp, phi, _hat_forms)
+    j_inv = _assemble_eager(xp, phi, _inverse_coefficients_eager(xp, phi), inverse, bias)
+    return xp.cat([(j_inv * matrix[..., None, :3, 3]).sum(-1), phi], -1)
+
+
 @op(matrix=(4, 4))
 def se3_adjoint(xp: Any, matrix: Any) -> Any:
     """The adjoint ``Ad(T) = [[R, hat(t) R], [0, R]]`` of poses, acting on twists ``(rho, phi)``:
@@ -375,6 +595,13 @@ def se3_ad(xp: Any, xi: Any) -> Any:
     rho, phi = _split(xi)
     w = so3_hat(xp, phi)
     return _blocks(xp, w, so3_hat(xp, rho), w)
+
+
+@eager_form(of=se3_ad)
+def se3_ad_eager(xp: Any, xi: Any) -> Any:
+    """:func:`se3_ad`, eager form: ``xi`` times a constant (6, 36) matrix."""
+    _, _, ad = constants(xp, xi, _linear_forms)
+    return xp.matmul(xi, ad).unflatten(-1, (6, 6))
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -505,6 +732,119 @@ def se3_right_jacobian_inverse(xp: Any, xi: Any) -> Any:
     return _left_jacobian_inverse(xp, -xi)
 
 
+# Eager forms of the Jacobians (_core.EAGER_FORMS): J_l(phi) and its inverse from _lie's eager forms;
+# Q's coefficients (c1, c2, c3) as one (..., 3) array (series below Q_SERIES_BELOW, the same closed
+# forms above); the matrix of _q_block's (h, v, w) over (rho, phi, phi x rho), its entries and delta
+# from the products of (1, u, d, d u) and (1, c1, c2, c3) and a constant (16, 10) matrix; Q =
+# hat(h) + delta I + [v, phi] [phi, w]^T.
+
+
+def _q_constants() -> tuple[list[Any], ...]:
+    """Constants of :func:`_q_block_eager`: ``(1, 1/2)``; the numerators' forms (7, 3) in ``(t, sin t,
+    sin(t/2), sin^2 t, sin^2(t/2), t cos t, u)`` and the denominators' factors ``(1, 2, 2)``; the
+    coefficient matrix (16, 10) of :func:`_q_block_eager`; ``(hat(h), delta I)`` (4, 9); then the
+    series tables of ``(c1, c2, c3)``."""
+    numerators = [[0.0] * 3 for _ in range(7)]
+    for row, col, value in (
+        (0, 0, 1.0),
+        (1, 0, -1.0),
+        (6, 1, 1.0),
+        (4, 1, -4.0),
+        (0, 2, 2.0),
+        (1, 2, -3.0),
+        (5, 2, 1.0),
+    ):
+        numerators[row][col] = value
+    k = [[0.0] * 10 for _ in range(16)]
+    one, u, d, du, c1, c2, c3 = 0, 1, 2, 3, 1, 2, 3
+    # rows of K: h, v, w; columns: rho, phi, phi x rho; then delta
+    entries = [
+        (0, 0, one, 0, 0.5), (0, 0, u, c2, -2.0), (0, 1, d, c2, 3.0), (0, 1, d, c1, -1.0),
+        (1, 0, one, c1, 1.0), (1, 1, d, c3, -2.0), (1, 2, one, c2, -1.0),
+        (2, 0, one, c1, 1.0), (2, 2, one, c2, 1.0),
+    ]  # fmt: skip
+    for row, col, i, j, value in entries:
+        k[4 * i + j][3 * row + col] += value
+    k[4 * du + c3][9] += 2.0
+    k[4 * d + c1][9] -= 2.0
+    hat_delta = [[0.0] * 9 for _ in range(4)]
+    for comp, cells in ((0, ((7, 1.0), (5, -1.0))), (1, ((2, 1.0), (6, -1.0))), (2, ((3, 1.0), (1, -1.0)))):
+        for cell, sign in cells:
+            hat_delta[comp][cell] = sign
+    for cell in (0, 4, 8):
+        hat_delta[3][cell] = 1.0
+    tables = _series_tables(_C1_SERIES, _C2_SERIES, _C3_SERIES, below=Q_SERIES_BELOW)
+    return [1.0, 0.5], numerators, [1.0, 2.0, 2.0], k, hat_delta, *tables
+
+
+def _q_block_eager(xp: Any, rho: Any, phi: Any) -> Any:
+    """:func:`_q_block`, eager form: ``(..., 3, 3)``."""
+    ang, numerators, factors, k, hat_delta, *tables = constants(xp, rho, _q_constants)
+    u = (phi * phi).sum(-1, keepdim=True)
+    small = u < Q_SERIES_BELOW
+    # the double where by the mask, as _lie._angle_eager: the closed forms read u + 4 where unused
+    uc = xp.add(u, small, alpha=Q_SERIES_BELOW)
+    t = xp.sqrt(uc)
+    s = xp.sin(t * ang)
+    tu = t * uc
+    z = xp.cat([t, s, s * s, t * xp.cos(t), uc], -1)
+    closed = xp.matmul(z, numerators) / (xp.cat([t, uc, tu], -1) * factors * uc)
+    series = _series_eager(xp, u * small, tuple(tables))
+    c = xp.where(small, series, closed)
+    d = (phi * rho).sum(-1, keepdim=True)
+    left = xp.nn.functional.pad(xp.cat([u, d, d * u], -1), (1, 0), value=1.0)
+    right = xp.nn.functional.pad(c, (1, 0), value=1.0)
+    kd = xp.matmul((left[..., :, None] * right[..., None, :]).flatten(-2), k)
+    basis = xp.stack([rho, phi, xp.linalg.cross(phi, rho)], -2)
+    h, v, w = _product(xp, kd[..., :9].unflatten(-1, (3, 3)), basis).unbind(-2)
+    outer = _product(xp, xp.stack([v, phi], -1), xp.stack([phi, w], -2))
+    return outer + xp.matmul(xp.cat([h, kd[..., 9:]], -1), hat_delta).unflatten(-1, (3, 3))
+
+
+def _left_jacobian_eager(xp: Any, xi: Any) -> Any:
+    rho, phi = xi[..., :3], xi[..., 3:]
+    _, left, *_ = constants(xp, xi, _hat_forms)
+    j = _assemble_eager(xp, phi, _jacobian_coefficients_eager(xp, phi), left)
+    return _blocks_eager(xp, j, _q_block_eager(xp, rho, phi))
+
+
+def _left_jacobian_inverse_eager(xp: Any, xi: Any) -> Any:
+    rho, phi = xi[..., :3], xi[..., 3:]
+    _, _, _, inverse, bias, _ = constants(xp, xi, _hat_forms)
+    j_inv = _assemble_eager(xp, phi, _inverse_coefficients_eager(xp, phi), inverse, bias)
+    block = -_product(xp, _product(xp, j_inv, _q_block_eager(xp, rho, phi)), j_inv)
+    return _blocks_eager(xp, j_inv, block)
+
+
+def _blocks_eager(xp: Any, j: Any, q: Any) -> Any:
+    """``[[j, q], [0, j]]``: one ``cat`` of the top, the bottom ``j`` padded with zeros, one ``cat``."""
+    return xp.cat([xp.cat([j, q], -1), xp.nn.functional.pad(j, (3, 0))], -2)
+
+
+@eager_form(of=se3_left_jacobian)
+def se3_left_jacobian_eager(xp: Any, xi: Any) -> Any:
+    """:func:`se3_left_jacobian`, eager form (see above)."""
+    return _left_jacobian_eager(xp, xi)
+
+
+@eager_form(of=se3_right_jacobian)
+def se3_right_jacobian_eager(xp: Any, xi: Any) -> Any:
+    """:func:`se3_right_jacobian`, eager form (see above)."""
+    return _left_jacobian_eager(xp, -xi)
+
+
+@eager_form(of=se3_left_jacobian_inverse)
+def se3_left_jacobian_inverse_eager(xp: Any, xi: Any) -> Any:
+    """:func:`se3_left_jacobian_inverse`, eager form (see above)."""
+    return _left_jacobian_inverse_eager(xp, xi)
+
+
+@eager_form(of=se3_right_jacobian_inverse)
+def se3_right_jacobian_inverse_eager(xp: Any, xi: Any) -> Any:
+    """:func:`se3_right_jacobian_inverse`, eager form (see above)."""
+    return _left_jacobian_inverse_eager(xp, -xi)
+
+
 se3_left_jacobian.__doc__ = "The left Jacobian ``J_l(xi)`` of SE(3)." + _JACOBIAN_DOC
 se3_right_jacobian.__doc__ = "The right Jacobian ``J_r(xi) = J_l(-xi)`` of SE(3)." + _JACOBIAN_DOC
 se3_left_jacobian_inverse.__doc__ = "The inverse ``J_l(xi)^-1`` of SE(3)'s left Jacobian." + _JACOBIAN_DOC
@@ -622,6 +962,66 @@ def se3_interpolate(
     rotation = xp.broadcast_to(rotation, (*batch, 3, 3))
     translation = xp.broadcast_to(translation, (*batch, 3, 1))
     return _with_bottom(xp, xp.concat([rotation, translation], axis=-1))
+
+
+# Eager forms of the perturbations and the screw interpolation: the same steps through the eager forms
+# of exp, log, compose and inverse.
+
+
+@nonfinite_by_arithmetic
+@eager_form(of=se3_plus)
+def se3_plus_eager(
+    xp: Any,
+    matrix: Any,
+    delta: Any,
+    *,
+    side: str = "right",
+    to_matrix: Conversion = unit_quaternion_to_matrix,
+) -> Any:
+    """:func:`se3_plus`, eager form: :func:`se3_compose_eager` of the pose and :func:`se3_exp_eager`
+    of the twist (NaN in every entry for a non-finite twist, so compose's term covers both inputs)."""
+    right = check_side("se3_plus", side)
+    step = se3_exp_eager(xp, delta)
+    return se3_compose_eager(xp, matrix, step) if right else se3_compose_eager(xp, step, matrix)
+
+
+@eager_form(of=se3_minus)
+def se3_minus_eager(
+    xp: Any,
+    matrix1: Any,
+    matrix2: Any,
+    *,
+    side: str = "right",
+    to_quaternion: Conversion = matrix_to_quaternion,
+) -> Any:
+    """:func:`se3_minus`, eager form: :func:`se3_log_eager` of the relative pose, which
+    :func:`se3_inverse_eager` and :func:`se3_compose_eager` make."""
+    right = check_side("se3_minus", side)
+    inverse = se3_inverse_eager(xp, matrix2)
+    relative = se3_compose_eager(xp, inverse, matrix1) if right else se3_compose_eager(xp, matrix1, inverse)
+    return _log_eager(xp, relative, to_quaternion)
+
+
+@eager_form(of=se3_interpolate)
+def se3_interpolate_eager(
+    xp: Any,
+    matrix1: Any,
+    matrix2: Any,
+    t: Any,
+    *,
+    mode: str = "screw",
+    to_matrix: Conversion = unit_quaternion_to_matrix,
+    to_quaternion: Conversion = matrix_to_quaternion,
+) -> Any:
+    """:func:`se3_interpolate`, eager form: the screw through the eager forms of inverse, compose, log
+    and exp; the decoupled mode is the componentwise function's."""
+    if mode != "screw":
+        return se3_interpolate(
+            xp, matrix1, matrix2, t, mode=mode, to_matrix=to_matrix, to_quaternion=to_quaternion
+        )
+    a, b, s = match_rank(xp, matrix1, matrix2, _column(_column(t)))
+    xi = _log_eager(xp, se3_compose_eager(xp, se3_inverse_eager(xp, a), b), to_quaternion)
+    return se3_compose_eager(xp, a, se3_exp_eager(xp, s[..., 0] * xi))
 
 
 # ---------------------------------------------------------------------------------------------------
