@@ -381,7 +381,7 @@ def so3_right_jacobian_inverse(xp: Any, omega: Any) -> Any:
 # columns at once over a trailing axis: Horner's scheme as one ``addcmul`` per term for the three
 # series together, the closed forms as one ``sin`` of (t, t/2). The matrix ``p I + q W + r w w^T`` is
 # then linear in the outer product of ``v = (1, w)``: ``(v v^T) * (coefficients @ E)`` contracted with
-# a constant (16, 9) matrix (:func:`_hat_forms`). About 30 operations, where the componentwise
+# a constant (16, 9) matrix (:func:`_jacobian_forms`). About 30 operations, where the componentwise
 # formulas take 53-66.
 
 # sin t / t = 1 - u/6 + u^2/120 - ...: p as its own series (no cancellation)
@@ -390,7 +390,7 @@ _P_SERIES = tuple((-1) ** k / math.factorial(2 * k + 1) for k in range(12))
 _INVERSE_P_SERIES = (1.0, *(-c for c in _C_SERIES[:11]))
 
 
-def _hat_forms() -> tuple[list[Any], ...]:
+def _jacobian_forms() -> tuple[list[Any], ...]:
     """Constants of :func:`_assemble_eager`: ``A`` (16, 9), row ``4 a + b`` the entries that
     ``v_a v_b`` (``v = (1, w)``) feeds in ``I`` (a = b = 0), ``hat(w)`` (a = 0 < b) and ``w w^T``
     (a, b > 0); and the maps ``E`` of the coefficients to the 16 products: ``(p, q, r)`` (left),
@@ -492,8 +492,8 @@ def _inverse_coefficients_eager(xp: Any, omega: Any) -> Any:
 
 def _assemble_eager(xp: Any, omega: Any, coefficients: Any, forms: Any, bias: Any = None) -> Any:
     """``p I + q hat(w) + r w w^T`` of :func:`_assemble`, from ``coefficients @ forms (+ bias)``, the
-    coefficient of each product ``v_a v_b`` of ``v = (1, w)`` (:func:`_hat_forms`)."""
-    (a, *_) = constants(xp, omega, _hat_forms)
+    coefficient of each product ``v_a v_b`` of ``v = (1, w)`` (:func:`_jacobian_forms`)."""
+    (a, *_) = constants(xp, omega, _jacobian_forms)
     v = xp.nn.functional.pad(omega, (1, 0), value=1.0)
     if bias is None:
         g = xp.matmul(coefficients, forms)
@@ -509,28 +509,28 @@ def _assemble_eager(xp: Any, omega: Any, coefficients: Any, forms: Any, bias: An
 @eager_form(of=so3_left_jacobian)
 def so3_left_jacobian_eager(xp: Any, omega: Any) -> Any:
     """:func:`so3_left_jacobian`, eager form (see above)."""
-    _, left, *_ = constants(xp, omega, _hat_forms)
+    _, left, *_ = constants(xp, omega, _jacobian_forms)
     return _assemble_eager(xp, omega, _jacobian_coefficients_eager(xp, omega), left)
 
 
 @eager_form(of=so3_right_jacobian)
 def so3_right_jacobian_eager(xp: Any, omega: Any) -> Any:
     """:func:`so3_right_jacobian`, eager form (see above)."""
-    _, _, right, *_ = constants(xp, omega, _hat_forms)
+    _, _, right, *_ = constants(xp, omega, _jacobian_forms)
     return _assemble_eager(xp, omega, _jacobian_coefficients_eager(xp, omega), right)
 
 
 @eager_form(of=so3_left_jacobian_inverse)
 def so3_left_jacobian_inverse_eager(xp: Any, omega: Any) -> Any:
     """:func:`so3_left_jacobian_inverse`, eager form (see above)."""
-    _, _, _, inverse, bias, _ = constants(xp, omega, _hat_forms)
+    _, _, _, inverse, bias, _ = constants(xp, omega, _jacobian_forms)
     return _assemble_eager(xp, omega, _inverse_coefficients_eager(xp, omega), inverse, bias)
 
 
 @eager_form(of=so3_right_jacobian_inverse)
 def so3_right_jacobian_inverse_eager(xp: Any, omega: Any) -> Any:
     """:func:`so3_right_jacobian_inverse`, eager form (see above)."""
-    _, _, _, inverse, _, bias = constants(xp, omega, _hat_forms)
+    _, _, _, inverse, _, bias = constants(xp, omega, _jacobian_forms)
     return _assemble_eager(xp, omega, _inverse_coefficients_eager(xp, omega), inverse, bias)
 
 

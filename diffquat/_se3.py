@@ -56,11 +56,11 @@ from ._lie import (
     _assemble,
     _assemble_eager,
     _components,
-    _hat_forms,
     _inverse_coefficients,
     _inverse_coefficients_eager,
     _jacobian_coefficients,
     _jacobian_coefficients_eager,
+    _jacobian_forms,
     _series,
     _series_eager,
     _series_tables,
@@ -560,7 +560,7 @@ def _log_eager(xp: Any, matrix: Any, to_quaternion: Conversion) -> Any:
     x = n2.clamp_max(_LOG_SERIES_BELOW) / (ws * ws)
     series = (xp.matmul(x**powers, table) + first) / ws
     phi = xp.where(n2 < _LOG_SERIES_BELOW, series, 2.0 * xp.atan2(s, w) / s) * v
-    _, _, _, inverse, bias, _ = constants(xp, phi, _hat_forms)
+    _, _, _, inverse, bias, _ = constants(xp, phi, _jacobian_forms)
     j_inv = _assemble_eager(xp, phi, _inverse_coefficients_eager(xp, phi), inverse, bias)
     return xp.cat([(j_inv * matrix[..., None, :3, 3]).sum(-1), phi], -1)
 
@@ -803,14 +803,14 @@ def _q_block_eager(xp: Any, rho: Any, phi: Any) -> Any:
 
 def _left_jacobian_eager(xp: Any, xi: Any) -> Any:
     rho, phi = xi[..., :3], xi[..., 3:]
-    _, left, *_ = constants(xp, xi, _hat_forms)
+    _, left, *_ = constants(xp, xi, _jacobian_forms)
     j = _assemble_eager(xp, phi, _jacobian_coefficients_eager(xp, phi), left)
     return _blocks_eager(xp, j, _q_block_eager(xp, rho, phi))
 
 
 def _left_jacobian_inverse_eager(xp: Any, xi: Any) -> Any:
     rho, phi = xi[..., :3], xi[..., 3:]
-    _, _, _, inverse, bias, _ = constants(xp, xi, _hat_forms)
+    _, _, _, inverse, bias, _ = constants(xp, xi, _jacobian_forms)
     j_inv = _assemble_eager(xp, phi, _inverse_coefficients_eager(xp, phi), inverse, bias)
     block = -_product(xp, _product(xp, j_inv, _q_block_eager(xp, rho, phi)), j_inv)
     return _blocks_eager(xp, j_inv, block)
