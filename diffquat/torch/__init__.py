@@ -139,7 +139,13 @@ def _result_type(xs: list[Any]) -> torch.dtype:
     integer and boolean tensors, lower in the category order, decide nothing."""
     floats = [x for x in xs if isinstance(x, Tensor) and x.dtype.is_floating_point]
     pool = [x.dtype for x in floats if x.ndim > 0] or [x.dtype for x in floats]
-    return functools.reduce(torch.promote_types, pool) if pool else torch.get_default_dtype()
+    # equal dtypes (the usual call) promote without torch.promote_types, which is a dispatched ATen
+    # operation: validation reads dtypes and dispatches nothing (issue 46; tests/test_ops.py)
+    return functools.reduce(_promote, pool) if pool else torch.get_default_dtype()
+
+
+def _promote(a: torch.dtype, b: torch.dtype) -> torch.dtype:
+    return a if a == b else torch.promote_types(a, b)
 
 
 def _without_autocast(x: Tensor) -> contextlib.AbstractContextManager[Any]:
