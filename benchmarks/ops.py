@@ -59,6 +59,8 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 import cases  # noqa: E402  (the suite's table of operations: its rows' inputs are counted here)
 
+import diffquat.torch as dq  # noqa: E402
+
 N = 8
 SEED = 0
 COMMAND = "python -m benchmarks.ops"
@@ -255,22 +257,16 @@ class Row:
     call: Callable[..., Any] | None = None
 
     def function(self) -> Callable[..., Any]:
-        import diffquat.torch as dq
-
         if self.call is not None:
             return self.call
         f = getattr(dq, self.name)
         return lambda *xs: f(*xs, **self.kwargs)
 
     def tensors(self, q: np.ndarray, dtype: Any) -> list[Any]:
-
         return [torch.tensor(np.asarray(x), dtype=dtype) for x in self.inputs(q)]
 
 
 def _sampler(name: str) -> Callable[..., Any]:
-
-    import diffquat.torch as dq
-
     def call(x: Any) -> Any:
         # a fixed seed per call: the same draw, the same operations
         return getattr(dq, name)(x, generator=torch.Generator().manual_seed(0))
@@ -280,8 +276,6 @@ def _sampler(name: str) -> Callable[..., Any]:
 
 def rows() -> list[Row]:
     """Every row of ``cases.OPS``, then the public functions that take tensors and have no row."""
-    import diffquat.torch as dq
-
     out = [Row(op.id, op.name, dict(op.kwargs), op.inputs, op) for op in cases.OPS]
     extra = [
         Row("se3_to_rotation_translation", "se3_to_rotation_translation", {}, lambda q: (_poses(q),)),
@@ -345,34 +339,26 @@ def _wxyz(q: Any) -> Any:
 
 def _pad34(t: Any) -> Any:
     """A 3x4 pose (torchlie's) as 4x4."""
-
     bottom = torch.zeros_like(t[..., :1, :])
     bottom[..., 0, 3] = 1
     return torch.cat([t, bottom], dim=-2)
 
 
 def _homogeneous(r: Any, t: Any) -> Any:
-
     return _pad34(torch.cat([r, t[..., None]], dim=-1))
 
 
 def _pose7(m: Any) -> Any:
     """A 4x4 pose as pypose's (t, q_xyzw)."""
-    import diffquat.torch as dq
-
     return dq.matrix_to_pose(m, layout="xyz_xyzw")
 
 
 def _from_pose7(x: Any) -> Any:
-    import diffquat.torch as dq
-
     return dq.pose_to_matrix(x, layout="xyz_xyzw")
 
 
 def _canonical_pose(x: Any) -> Any:
     """pypose's (t, q_xyzw) as diffquat's "xyzw_xyz" layout, the quaternion in canonical sign."""
-    import diffquat.torch as dq
-
     return torch.cat([dq.standardize_quaternion(x[..., 3:], scalar_first=False), x[..., :3]], dim=-1)
 
 
