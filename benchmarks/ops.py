@@ -17,8 +17,9 @@ warm-up call of the same kind:
 
 The inputs are those of the rows of ``tests/cases.py`` (``OPS``) at N = 8 random rotations (seed 0):
 one row per public function and keyword variant, plus the public functions the table has no row for
-(the samplers, with a fixed generator, and ``se3_to_rotation_translation``). Counts do not depend on N,
-the values or the machine, only on the code and the torch version (recorded): they are exact.
+(the samplers, with a fixed generator, and ``se3_to_rotation_translation``). diffquat's counts depend
+on the code, the shapes, the device and the torch version (recorded), not on the values (no Python
+branch reads an array value) or the machine: they are exact, and pinned.
 
 Each peer takes its own layout (scalar-last quaternions, pypose's ``(t, q)`` poses, torchlie's 3x4
 poses, roma's ``Rigid``, a 6D as two columns), converted outside the counted region; its output is
