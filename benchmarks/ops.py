@@ -1166,6 +1166,10 @@ def render(results: dict[str, Any]) -> str:
         "the edge named. "
         f"`{results['before_commit']}`: the counts of the tree before issue 46's work, by the same rules.",
         "",
+        "Peers: roma, kornia, pytorch-kinematics, pypose, torchlie (theseus' Lie groups) and, for "
+        "`se3_compose`, a plain 4x4 matmul. pytorch3d is not installable in this environment; "
+        "pytorch-kinematics' `transforms` are adapted from its rotation conversions and stand in for it.",
+        "",
     ]
     met = [e for e in rows_ if e["met"] is True]
     missed = [e for e in rows_ if e["met"] is False]
