@@ -12,6 +12,7 @@ import importlib
 import importlib.util
 import itertools
 import os
+import re
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -91,6 +92,43 @@ def pytest_runtest_teardown(item: pytest.Item) -> None:
     if mappings > _MAP_LIMIT // 3:
         jax.clear_caches()
         gc.collect()
+
+
+# The quick tier for local work: ``pytest -m "not slow"`` leaves out the checks that compile, export or
+# run whole programs (tests/README.md). They are marked here, by file and by name, not one by one, so a
+# new test of that kind is marked by its name; CI runs everything (no -m). Compiled: torch.compile
+# (inductor, aot_eager) and jax.jit programs (test_jax_derivatives jits every derivative check of a
+# row, the suite's largest cost after inductor); exported: jit.trace/script, torch.export, fx, ONNX,
+# jax.export, sharded programs; and the notebooks, the documentation site, the wheel and the benchmarks'
+# quick runs, each a program of its own.
+SLOW_FILES = {
+    "test_benchmark.py",
+    "test_capture.py",
+    "test_docs.py",
+    "test_export_roundtrip.py",
+    "test_jax_deploy.py",
+    "test_notebooks.py",
+    "test_scale_out.py",
+    "test_wheel.py",
+    "test_xla.py",
+}
+# the checks in those files that only read sources or merge tables, kept in the quick tier
+QUICK_IN_SLOW_FILES = {
+    "test_every_public_name_is_in_exactly_one_topic",
+    "test_readme_links_into_the_docs_resolve",
+    "test_readme_links_every_notebook_and_its_figure",
+    "test_merge_lists_only_the_runs_whose_tables_it_shows",
+}
+SLOW_NAMES = re.compile(r"compil|jit|onnx|trace|captur|inductor|xla")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    slow = pytest.mark.slow
+    for item in items:
+        name = getattr(item, "originalname", item.name)
+        in_slow_file = item.path.name in SLOW_FILES and name not in QUICK_IN_SLOW_FILES
+        if in_slow_file or SLOW_NAMES.search(name) or name == "test_jax_derivatives":
+            item.add_marker(slow)
 
 
 @dataclass(frozen=True)
