@@ -842,13 +842,18 @@ def quaternion_to_matrix_eager_cotangent(
     ``dL/du = (2 / n) (sum_k g_k C_k - (g . R) I) u``, the bracket one product of ``[g, g . R]`` with
     the transposed coefficients (the norm's column negated, the factor 2 folded in), then one
     contraction with ``u``. It is orthogonal to ``u`` (the map is scale invariant). ``n``'s own
-    cotangent adds ``2 gn u``."""
+    cotangent adds ``2 gn u``.
+
+    The zero quaternion (``n`` the bias alone, every other ``n`` at least ~1e-14) takes a zero
+    cotangent by a selection, not by its arithmetic (``M 0 / tiny``): so its derivative is zero too,
+    where ``M / tiny`` met the scale's ``1 / tiny`` and gave a second derivative of inf * 0."""
     radial = None if gn is None else 2.0 * u * gn.view(*u.shape[:-1], 1)
     if g is None:
         return radial
     _, ct, _ = constants(xp, u, _q2m_constants)
     m = xp.cat([g, (g * r).sum(-1, keepdim=True)], -1) @ ct
-    gu = (m.view(*u.shape, 4) * u[..., None, :]).sum(-1) / n.view(*u.shape[:-1], 1)
+    n = n.view(*u.shape[:-1], 1)
+    gu = xp.where(n > _TINY32, (m.view(*u.shape, 4) * u[..., None, :]).sum(-1) / n, 0.0)
     return gu if radial is None else gu + radial
 
 
@@ -858,10 +863,13 @@ def _cotangent_forms() -> list[list[float]]:
     return [[(-2.0 if k == 9 else 2.0) * c[i][k] for i in range(16)] for k in range(10)]
 
 
+# float32's smallest normal number, representable in every compute dtype (float32, float64)
+_TINY32 = 1.1754943508222875e-38
+
+
 def _q2m_constants() -> tuple[list[Any], ...]:
-    # the bias: tiny on the diagonal and the norm (the zero quaternion's identity); float32's tiny is
-    # representable in every compute dtype (float32, float64)
-    tiny = 1.1754943508222875e-38
+    # the bias: tiny on the diagonal and the norm (the zero quaternion's identity)
+    tiny = _TINY32
     bias = [tiny, 0.0, 0.0, 0.0, tiny, 0.0, 0.0, 0.0, tiny, tiny]
     return _quadratic_forms(), _cotangent_forms(), bias
 
