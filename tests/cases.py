@@ -2955,6 +2955,86 @@ _SPLINE_TOPS = {"quaternion_squad": 5, "so3_bspline": 3, "se3_bspline": 3, "se3_
 _SPLINE_ULPS = {"se3_bspline": 32.0}
 
 
+_IGSO3_ANGLES = np.array([0.0, 1e-8, 1e-3, 0.5, 2.0, np.pi - 1e-6, np.pi])
+_IGSO3_SIGMAS = np.array([1e-6, 1e-3, 1e-2, 0.1, 3.0, 30.0, 1e3, 1e5])
+
+
+def _igso3_sigma_ends(op: Op) -> Callable[[str], tuple[np.ndarray, ...]]:
+    """IGSO(3) at sigma's ends (1e-6 ... 1e-2: a point mass at the identity; 30 ... 1e5: the uniform law)
+    and in between, at the angles 0, 1e-8, 1e-3, 0.5, 2, pi - 1e-6 and pi."""
+
+    def make(dtype: str) -> tuple[np.ndarray, ...]:
+        angle = np.tile(_IGSO3_ANGLES, len(_IGSO3_SIGMAS))
+        sigma = np.repeat(_IGSO3_SIGMAS, len(_IGSO3_ANGLES))
+        if op.id != "igso3_score":
+            return angle, sigma
+        q = axis_angle_quaternions(np.tile([[0.3, -0.5, 0.8]], (len(angle), 1)), angle)
+        matrix, _, mean = op.inputs(q)
+        return matrix, sigma, mean
+
+    return make
+
+
+def _fit_points(op: Op, kind: str) -> Callable[[str], tuple[np.ndarray, ...]]:
+    """A fit's inputs with coplanar source points (z = 0: the cross-covariance has rank 2, the
+    rotation is still unique) or with two source points and their targets repeated (coincident),
+    at generic rotations and the half-turns."""
+
+    def make(dtype: str) -> tuple[np.ndarray, ...]:
+        q = np.concatenate([uniform_quaternions(8, seed=44), _half_turns()[::3]])
+        source, target, *rest = (x.copy() for x in op.inputs(q))
+        if kind == "coplanar":
+            source[..., 2] = 0.0
+        else:
+            source[..., 1, :], target[..., 1, :] = source[..., 0, :], target[..., 0, :]
+        return (source, target, *rest)
+
+    return make
+
+
+_FITS = ("fit_rotation", "fit_rotation-unweighted", "fit_rigid_transform", "fit_similarity_transform")
+
+
+def _all_equal(op: Op) -> Callable[[str], tuple[np.ndarray, ...]]:
+    """A mean's samples all one element (the first; quaternions keep their signs, which the mean
+    ignores), at the identity, the half-turns, near them and generic rotations: the mean is that
+    element."""
+
+    def make(dtype: str) -> tuple[np.ndarray, ...]:
+        q = np.concatenate(
+            [_IDENTITIES, _half_turns()[::2], _near_half_turns()[::15], uniform_quaternions(4, seed=45)]
+        )
+        samples, weights = op.inputs(q)
+        if samples.shape[-1] == 4 and samples.ndim == 3:  # quaternions (..., n, 4)
+            signs = np.sign(np.sum(samples * samples[..., :1, :], axis=-1, keepdims=True))
+            return samples[..., :1, :] * np.where(signs == 0, 1.0, signs), weights
+        return np.broadcast_to(samples[..., :1, :, :], samples.shape).copy(), weights
+
+    return make
+
+
+def _all_equal_error(op_id: str) -> Callable[[list[np.ndarray], np.ndarray, str], float]:
+    """Against the row's oracle; the L1 median's (Weiszfeld's, which divides by each distance) against
+    the L2 geodesic mean's oracle: both are the common element."""
+    if op_id != "rotation_mean[geodesic_l1]":
+        return against_the_oracle(op_id)
+
+    def error(received: list[np.ndarray], out: np.ndarray, dtype: str) -> float:
+        expected = OPS_BY_NAME["rotation_mean[geodesic]"].expected(*received)
+        return table_error(OPS_BY_NAME[op_id], received, out, expected) / float(np.finfo(dtype).eps)
+
+    return error
+
+
+_MEANS = (
+    "rotation_mean[chordal]",
+    "rotation_mean[geodesic]",
+    "rotation_mean[geodesic_l1]",
+    "quaternion_mean",
+    "se3_mean",
+)
+
+
 # Rows whose rotation configurations need more than the default (16 ulp, as ZERO_TRANSLATION_ULPS):
 # the relative rotations of a pair or sequence at an exact half-turn (and at the locks, which hold
 # half-turns) have two shortest paths (skipped),
@@ -3037,6 +3117,42 @@ OPS = [
         ),
     )
     if op.id in _SPLINE_TOPS
+    else op
+    for op in OPS
+]
+OPS = [
+    replace(
+        op,
+        degenerate=(
+            *op.degenerate,
+            Degenerate("sigma_ends", _igso3_sigma_ends(op), against_the_oracle(op.id), 16.0),
+        ),
+    )
+    if op.id in ("igso3_log_density", "igso3_angle_cdf", "igso3_score")
+    else op
+    for op in OPS
+]
+OPS = [
+    replace(
+        op,
+        degenerate=(
+            *op.degenerate,
+            *(
+                Degenerate(kind, _fit_points(op, kind), against_the_oracle(op.id), 16.0)
+                for kind in ("coplanar", "coincident")
+            ),
+        ),
+    )
+    if op.id in _FITS
+    else op
+    for op in OPS
+]
+OPS = [
+    replace(
+        op,
+        degenerate=(*op.degenerate, Degenerate("all_equal", _all_equal(op), _all_equal_error(op.id), 16.0)),
+    )
+    if op.id in _MEANS
     else op
     for op in OPS
 ]
