@@ -3035,6 +3035,36 @@ _MEANS = (
 )
 
 
+def _at_rest(op: Op) -> Callable[[str], tuple[np.ndarray, ...]]:
+    """A rate row at rest: its rates (q', q'', w) zero at the identity, the half-turns and generic
+    rotations (the step dt as the row has it); a sequence of samples all the first (signs kept)."""
+
+    def make(dtype: str) -> tuple[np.ndarray, ...]:
+        q = np.concatenate([_IDENTITIES, _half_turns()[::2], uniform_quaternions(4, seed=46)])
+        xs = [x.copy() for x in op.inputs(q)]
+        if op.id == "angular_velocity_from_quaternions":
+            samples = xs[0]
+            signs = np.sign(np.sum(samples * samples[..., :1, :], axis=-1, keepdims=True))
+            norms = np.linalg.norm(samples, axis=-1, keepdims=True)  # norms are ignored too: kept
+            first = samples[..., :1, :] / norms[..., :1, :]
+            return first * norms * np.where(signs == 0, 1.0, signs), xs[1]
+        last = len(xs) - 1 if op.id.startswith("integrate_angular_velocity") else len(xs)
+        for i in range(1, last):
+            xs[i][...] = 0.0
+        return tuple(xs)
+
+    return make
+
+
+_RATES = (
+    "angular_velocity",
+    "quaternion_derivative[space]",
+    "angular_acceleration",
+    "integrate_angular_velocity[space]",
+    "angular_velocity_from_quaternions",
+)
+
+
 # Rows whose rotation configurations need more than the default (16 ulp, as ZERO_TRANSLATION_ULPS):
 # the relative rotations of a pair or sequence at an exact half-turn (and at the locks, which hold
 # half-turns) have two shortest paths (skipped),
@@ -3153,6 +3183,14 @@ OPS = [
         degenerate=(*op.degenerate, Degenerate("all_equal", _all_equal(op), _all_equal_error(op.id), 16.0)),
     )
     if op.id in _MEANS
+    else op
+    for op in OPS
+]
+OPS = [
+    replace(
+        op, degenerate=(*op.degenerate, Degenerate("at_rest", _at_rest(op), against_the_oracle(op.id), 16.0))
+    )
+    if op.id in _RATES
     else op
     for op in OPS
 ]
