@@ -520,7 +520,7 @@ def against_the_oracle(op_id: str) -> Callable[[list[np.ndarray], np.ndarray, st
 
     def error(received: list[np.ndarray], out: np.ndarray, dtype: str) -> float:
         op = OPS_BY_NAME[op_id]
-        return table_error(op, received, out, op.oracle(*received)) / float(np.finfo(dtype).eps)
+        return table_error(op, received, out, op.expected(*received)) / float(np.finfo(dtype).eps)
 
     return error
 
@@ -2806,6 +2806,417 @@ OPS += [
 ]
 
 
+# Every row without configurations of its own is named at the rotations where rotation maps
+# degenerate, through the row's own inputs (its pairs give coincident rotations at the identity and
+# antipodal ones at the half-turns; its SE(3) rows pure rotations with their translation; its means
+# clusters about them): the identity, the 26 exact half-turns (about the axes, the face and the cube
+# diagonals), rotations 1e-1 ... 1e-8 short of a half-turn and 1e-4 ... 1e-10 from the identity, and
+# the 24 exact gimbal locks of ``_gimbal_locks``, against the row's float64 oracle as the table
+# measures it (accurate to a few float64 ulps there: float64's bound allows for it).
+_IDENTITIES = np.array([[1.0, 0.0, 0.0, 0.0], [-1.0, 0.0, 0.0, 0.0]])
+
+
+def _near_half_turns_for(dtype: str, relative: bool) -> np.ndarray:
+    """``_near_half_turns`` (every 7th), and for a row of a relative rotation (``relative``) in float32
+    only those 1e-1 ... 1e-3 short: a pair's relative rotation 1e-4 or less short of a half-turn is, once
+    rounded to float32, within float32's rounding of the tie where the shortest path changes sides
+    (there the answer is either branch's, and the reference at the rounded inputs cannot say which)."""
+    q = _near_half_turns()[::7]
+    if relative and dtype != "float64":
+        angle = 2.0 * np.arctan2(np.linalg.norm(q[:, 1:], axis=-1), np.abs(q[:, 0]))
+        q = q[np.pi - angle > 5e-4]
+    return q
+
+
+def euler_rotation_error(convention: str) -> Callable[[list[np.ndarray], np.ndarray, str], float]:
+    """Angles at a gimbal lock are not unique: the rotation they make (scipy, float64) against the
+    input's rotation, entrywise, in ulps of the dtype. Within 1e-7 rad of a lock the documented rule
+    (the third angle 0, as scipy) moves the rotation by up to that distance: allowed, as documented."""
+    proper = convention[0].lower() == convention[2].lower()
+
+    def error(received: list[np.ndarray], out: np.ndarray, dtype: str) -> float:
+        x = received[0]
+        expected = oracle_quaternion_to_matrix(oracle_normalize(x)) if x.shape[-1] == 4 else x
+        made = oracle_quaternion_to_matrix(oracle_euler_to_quaternion(out, convention))
+        middle = out[..., 1]
+        to_lock = np.minimum(middle, np.pi - middle) if proper else 0.5 * np.pi - np.abs(middle)
+        allowed = np.where(to_lock <= 1.0001e-7, 2.0 * np.abs(to_lock), 0.0)
+        excess = np.maximum(np.abs(made - expected).max(axis=(-2, -1)) - allowed, 0.0)
+        return float(excess.max(initial=0.0)) / float(np.finfo(dtype).eps)
+
+    return error
+
+
+def at_rotations(
+    op: Op, ulps: float, skip: tuple[str, ...] = (), relative: bool = False, error: Any = None
+) -> tuple[Degenerate, ...]:
+    sets: dict[str, Callable[[str], np.ndarray]] = {
+        "identity": lambda dtype: _IDENTITIES,
+        "half_turns": lambda dtype: _half_turns(),
+        "near_half_turns": lambda dtype: _near_half_turns_for(dtype, relative),
+        "near_identity": lambda dtype: _near_identity(),
+        "gimbal_lock": lambda dtype: _gimbal_locks(),
+    }
+    return tuple(
+        Degenerate(name, lambda dtype, q=q: op.inputs(q(dtype)), error or against_the_oracle(op.id), ulps)
+        for name, q in sets.items()
+        if name not in skip
+    )
+
+
+def _endpoint_inputs(
+    inputs: Callable[[np.ndarray], tuple[np.ndarray, ...]],
+) -> Callable[[str], tuple[np.ndarray, ...]]:
+    """An interpolation's inputs at t = 0 and t = 1 exactly, at coincident, generic and nearly
+    antipodal pairs (1e-1 ... 1e-3 short of a half-turn, away from the tie of the shortest path)."""
+
+    def make(dtype: str) -> tuple[np.ndarray, ...]:
+        q = np.concatenate(
+            [_IDENTITIES, uniform_quaternions(8, seed=41), _near_half_turns_for("float32", True)]
+        )
+        *pair, _ = inputs(np.concatenate([q, q]))
+        return (*pair, np.repeat([0.0, 1.0], len(q)))
+
+    return make
+
+
+def endpoint_error(received: list[np.ndarray], out: np.ndarray, dtype: str) -> float:
+    """An interpolation at t = 0 and 1 against its ends as received (exact): relative to the largest
+    entry of each, up to the sign for quaternions (slerp takes the shortest path)."""
+    start, end, t = received
+    expected = np.where(np.reshape(t, t.shape + (1,) * (start.ndim - t.ndim)) == 0.0, start, end)
+    if expected.shape[-1] == 4 and expected.ndim == 2:
+        expected = oracle_normalize(expected)
+        error = np.minimum(np.abs(out - expected).max(axis=-1), np.abs(out + expected).max(axis=-1))
+    else:
+        error = (np.abs(out - expected) / np.abs(expected).max(axis=(-2, -1), keepdims=True)).max(
+            axis=(-2, -1)
+        )
+    return float(error.max()) / float(np.finfo(dtype).eps)
+
+
+def reference_matrix_fisher_log_normalizer(matrix: np.ndarray) -> np.ndarray:
+    """log c(F) by mpmath (``reference_log_c``, 20 digits) at the proper singular values: the float64
+    oracle's quadrature stops at a relative 1e-13 (~60 float64 ulps measured)."""
+    return _each(proper_singular_values(matrix), reference_log_c)
+
+
+def _fisher_reference(op_id: str) -> Callable[[list[np.ndarray], np.ndarray, str], float]:
+    def error(received: list[np.ndarray], out: np.ndarray, dtype: str) -> float:
+        reference = reference_matrix_fisher_log_normalizer(received[0])
+        if len(received) > 1:  # the NLL: log c(F) - tr(F^T R)
+            reference = reference - np.sum(received[0] * received[1], axis=(-2, -1))
+        return table_error(OPS_BY_NAME[op_id], received, out, reference) / float(np.finfo(dtype).eps)
+
+    return error
+
+
+def _concentrations(op: Op) -> Callable[[str], tuple[np.ndarray, ...]]:
+    """The Fisher rows' F = k R D at concentrations k = 0, 1e-12, 1e-6, 1e-2, 1e2, 1e4 (zero, vanishing,
+    large), with D = I (equal singular values), diag(2, 1, -0.5), diag(1, 0, 0) and diag(1, 1, 0)
+    (rank 1 and 2), R the identity, a half-turn and two generic rotations."""
+
+    def make(dtype: str) -> tuple[np.ndarray, ...]:
+        q = np.concatenate([_IDENTITIES[:1], _half_turns()[12:13], uniform_quaternions(2, seed=42)])
+        xs = op.inputs(oracle_normalize(np.repeat(q, 24, axis=0)))
+        k = np.tile(np.repeat([0.0, 1e-12, 1e-6, 1e-2, 1e2, 1e4], 4), len(q))
+        diagonals = ([1.0, 1.0, 1.0], [2.0, 1.0, -0.5], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0])
+        d = np.tile(np.array([np.diag(v) for v in diagonals]), (6 * len(q), 1, 1))
+        rotation = oracle_quaternion_to_matrix(oracle_normalize(np.repeat(q, 24, axis=0)))
+        return (k[:, None, None] * rotation @ d, *xs[1:])
+
+    return make
+
+
+def _spline_inputs_at(op: Op, top: int, constant: bool) -> Callable[[str], tuple[np.ndarray, ...]]:
+    """A spline row's inputs at every knot 0, 1, ..., ``top`` (segment boundaries and both ends of the
+    parameter range) for generic controls, or (``constant``) at its usual parameters with every
+    control rotation the first one (an SE(3) spline keeps its translations: a pure translation)."""
+
+    def make(dtype: str) -> tuple[np.ndarray, ...]:
+        q = uniform_quaternions(4 * (top + 1), seed=43)
+        control, u = op.inputs(q)
+        if constant:
+            control = control.copy()
+            if control.shape[-1] == 4 and control.ndim == 3:  # squad: keep the signs and norms
+                norms = np.linalg.norm(control, axis=-1, keepdims=True)
+                signs = np.sign(control[..., :1] * control[..., :1, :1])
+                control = control[..., :1, :] * norms / norms[..., :1, :] * np.where(signs == 0, 1.0, signs)
+            else:
+                control[..., :3, :3] = control[..., :1, :3, :3]
+            return control, u
+        return control, np.tile(np.arange(top + 1.0), 4)
+
+    return make
+
+
+_SPLINE_TOPS = {"quaternion_squad": 5, "so3_bspline": 3, "se3_bspline": 3, "se3_bspline[split]": 3}
+# se3_bspline's float64 oracle (scipy's 4x4 expm and logm) is itself ~10-20 ulp off (18.5 at the knots)
+_SPLINE_ULPS = {"se3_bspline": 32.0}
+
+
+_IGSO3_ANGLES = np.array([0.0, 1e-8, 1e-3, 0.5, 2.0, np.pi - 1e-6, np.pi])
+_IGSO3_SIGMAS = np.array([1e-6, 1e-3, 1e-2, 0.1, 3.0, 30.0, 1e3, 1e5])
+
+
+def _igso3_sigma_ends(op: Op) -> Callable[[str], tuple[np.ndarray, ...]]:
+    """IGSO(3) at sigma's ends (1e-6 ... 1e-2: a point mass at the identity; 30 ... 1e5: the uniform law)
+    and in between, at the angles 0, 1e-8, 1e-3, 0.5, 2, pi - 1e-6 and pi."""
+
+    def make(dtype: str) -> tuple[np.ndarray, ...]:
+        angle = np.tile(_IGSO3_ANGLES, len(_IGSO3_SIGMAS))
+        sigma = np.repeat(_IGSO3_SIGMAS, len(_IGSO3_ANGLES))
+        if op.id != "igso3_score":
+            return angle, sigma
+        q = axis_angle_quaternions(np.tile([[0.3, -0.5, 0.8]], (len(angle), 1)), angle)
+        matrix, _, mean = op.inputs(q)
+        return matrix, sigma, mean
+
+    return make
+
+
+def _fit_points(op: Op, kind: str) -> Callable[[str], tuple[np.ndarray, ...]]:
+    """A fit's inputs with coplanar source points (z = 0: the cross-covariance has rank 2, the
+    rotation is still unique) or with two source points and their targets repeated (coincident),
+    at generic rotations and the half-turns."""
+
+    def make(dtype: str) -> tuple[np.ndarray, ...]:
+        q = np.concatenate([uniform_quaternions(8, seed=44), _half_turns()[::3]])
+        source, target, *rest = (x.copy() for x in op.inputs(q))
+        if kind == "coplanar":
+            source[..., 2] = 0.0
+        else:
+            source[..., 1, :], target[..., 1, :] = source[..., 0, :], target[..., 0, :]
+        return (source, target, *rest)
+
+    return make
+
+
+_FITS = ("fit_rotation", "fit_rotation-unweighted", "fit_rigid_transform", "fit_similarity_transform")
+
+
+def _all_equal(op: Op) -> Callable[[str], tuple[np.ndarray, ...]]:
+    """A mean's samples all one element (the first; quaternions keep their signs, which the mean
+    ignores), at the identity, the half-turns, near them and generic rotations: the mean is that
+    element."""
+
+    def make(dtype: str) -> tuple[np.ndarray, ...]:
+        q = np.concatenate(
+            [_IDENTITIES, _half_turns()[::2], _near_half_turns()[::15], uniform_quaternions(4, seed=45)]
+        )
+        samples, weights = op.inputs(q)
+        if samples.shape[-1] == 4 and samples.ndim == 3:  # quaternions (..., n, 4)
+            signs = np.sign(np.sum(samples * samples[..., :1, :], axis=-1, keepdims=True))
+            return samples[..., :1, :] * np.where(signs == 0, 1.0, signs), weights
+        return np.broadcast_to(samples[..., :1, :, :], samples.shape).copy(), weights
+
+    return make
+
+
+def _all_equal_error(op_id: str) -> Callable[[list[np.ndarray], np.ndarray, str], float]:
+    """Against the row's oracle; the L1 median's (Weiszfeld's, which divides by each distance) against
+    the L2 geodesic mean's oracle: both are the common element."""
+    if op_id != "rotation_mean[geodesic_l1]":
+        return against_the_oracle(op_id)
+
+    def error(received: list[np.ndarray], out: np.ndarray, dtype: str) -> float:
+        expected = OPS_BY_NAME["rotation_mean[geodesic]"].expected(*received)
+        return table_error(OPS_BY_NAME[op_id], received, out, expected) / float(np.finfo(dtype).eps)
+
+    return error
+
+
+_MEANS = (
+    "rotation_mean[chordal]",
+    "rotation_mean[geodesic]",
+    "rotation_mean[geodesic_l1]",
+    "quaternion_mean",
+    "se3_mean",
+)
+
+
+def _at_rest(op: Op) -> Callable[[str], tuple[np.ndarray, ...]]:
+    """A rate row at rest: its rates (q', q'', w) zero at the identity, the half-turns and generic
+    rotations (the step dt as the row has it); a sequence of samples all the first (signs kept)."""
+
+    def make(dtype: str) -> tuple[np.ndarray, ...]:
+        q = np.concatenate([_IDENTITIES, _half_turns()[::2], uniform_quaternions(4, seed=46)])
+        xs = [x.copy() for x in op.inputs(q)]
+        if op.id == "angular_velocity_from_quaternions":
+            samples = xs[0]
+            signs = np.sign(np.sum(samples * samples[..., :1, :], axis=-1, keepdims=True))
+            norms = np.linalg.norm(samples, axis=-1, keepdims=True)  # norms are ignored too: kept
+            first = samples[..., :1, :] / norms[..., :1, :]
+            return first * norms * np.where(signs == 0, 1.0, signs), xs[1]
+        last = len(xs) - 1 if op.id.startswith("integrate_angular_velocity") else len(xs)
+        for i in range(1, last):
+            xs[i][...] = 0.0
+        return tuple(xs)
+
+    return make
+
+
+_RATES = (
+    "angular_velocity",
+    "quaternion_derivative[space]",
+    "angular_acceleration",
+    "integrate_angular_velocity[space]",
+    "angular_velocity_from_quaternions",
+)
+
+
+@functools.cache
+def _mp_expm_times(t1: bytes, xi: bytes) -> bytes:
+    """``T1 expm(hat(xi))`` by mpmath's expm at 40 digits (float64 bytes in and out)."""
+    with mpmath.workdps(40):
+        e = mpmath.expm(mpmath.matrix(se3_hat_of(np.frombuffer(xi)[None])[0].tolist()))
+        out = mpmath.matrix(np.frombuffer(t1).reshape(4, 4).tolist()) * e
+        return np.array(out.tolist(), dtype=np.float64).tobytes()
+
+
+def se3_interpolate_error(received: list[np.ndarray], out: np.ndarray, dtype: str) -> float:
+    """``T1 exp(t log(T1^-1 T2))`` with the log by the float64 oracle (the axis-angle closed form and a
+    solve, a few ulps) and the exponential by mpmath at 40 digits: scipy's expm, the row's oracle, is
+    itself up to 62 float64 ulps off near a half-turn (diffquat 4.5 from this reference)."""
+    t1, t2, t = received
+    xi = t[:, None] * oracle_se3_log(np.linalg.inv(t1) @ t2)
+    expected = np.array(
+        [
+            np.frombuffer(_mp_expm_times(a.tobytes(), x.tobytes())).reshape(4, 4)
+            for a, x in zip(t1, xi, strict=True)
+        ]
+    )
+    return table_error(OPS_BY_NAME["se3_interpolate"], received, out, expected) / float(np.finfo(dtype).eps)
+
+
+# Rows whose rotation configurations need more than the default (16 ulp, as ZERO_TRANSLATION_ULPS):
+# the relative rotations of a pair or sequence at an exact half-turn (and at the locks, which hold
+# half-turns) have two shortest paths (skipped),
+# and near one in float32 only to 1e-3 (see _near_half_turns_for); Euler angles at a lock are measured
+# by the rotation they make; the float64 bound of rows whose float64 oracle is itself a few ulps off.
+_RELATIVE = {"skip": ("half_turns", "gimbal_lock"), "relative": True}
+ROTATION_DEGENERATE: dict[str, dict[str, Any]] = {
+    "quaternion_slerp": _RELATIVE,
+    # against mpmath's expm of the oracle's log: scipy's expm is up to 62 float64 ulps off there
+    "se3_interpolate": {**_RELATIVE, "error": se3_interpolate_error},
+    "angular_velocity_from_quaternions": _RELATIVE,
+    "quaternion_squad": _RELATIVE,
+    "so3_bspline": _RELATIVE,
+    # the float64 oracle takes scipy's logm of the relative poses, which loses ~1/delta near a
+    # half-turn (1.9e8 ulp): no reference there, as the row's `applies` says
+    # and at generic controls scipy's 4x4 expm / logm are themselves ~10-20 float64 ulp off (its
+    # expm at t = 1 is 12 ulp from T2 in se3_interpolate): 32 ulp
+    "se3_bspline": {"skip": ("half_turns", "gimbal_lock", "near_half_turns"), "ulps": 32.0},
+    "se3_bspline[split]": _RELATIVE,
+    # F = R: singular values (1, 1, 1), where the 24-node Talbot rule is 59 float64 ulps (of the
+    # error scale 6) from mpmath's 20 digits (float32: 1.1): a limit of the rule, reported (issue 48)
+    "matrix_fisher_log_normalizer": {
+        "error": _fisher_reference("matrix_fisher_log_normalizer"),
+        "ulps": 64.0,
+    },
+    "matrix_fisher_nll": {"error": _fisher_reference("matrix_fisher_nll")},
+    "matrix_to_euler_angles[ZXZ]": {"error": euler_rotation_error(EULER_ROWS["matrix_to_euler_angles"])},
+    "quaternion_to_euler_angles[xzx]": {
+        "error": euler_rotation_error(EULER_ROWS["quaternion_to_euler_angles"])
+    },
+}
+OPS = [
+    op
+    if op.degenerate
+    else replace(op, degenerate=at_rotations(op, **{"ulps": 16.0, **ROTATION_DEGENERATE.get(op.id, {})}))
+    for op in OPS
+]
+OPS = [
+    replace(
+        op,
+        degenerate=(
+            *op.degenerate,
+            Degenerate("endpoints", _endpoint_inputs(op.inputs), endpoint_error, 16.0),
+        ),
+    )
+    if op.id in ("quaternion_slerp", "se3_interpolate")
+    else op
+    for op in OPS
+]
+OPS = [
+    replace(
+        op,
+        degenerate=(
+            *op.degenerate,
+            Degenerate("concentrations", _concentrations(op), _fisher_reference(op.id), 16.0),
+        ),
+    )
+    if op.id in ("matrix_fisher_log_normalizer", "matrix_fisher_nll")
+    else op
+    for op in OPS
+]
+OPS = [
+    replace(
+        op,
+        degenerate=(
+            *op.degenerate,
+            Degenerate(
+                "knots",
+                _spline_inputs_at(op, _SPLINE_TOPS[op.id], False),
+                against_the_oracle(op.id),
+                _SPLINE_ULPS.get(op.id, 16.0),
+            ),
+            Degenerate(
+                "constant_rotation",
+                _spline_inputs_at(op, _SPLINE_TOPS[op.id], True),
+                against_the_oracle(op.id),
+                _SPLINE_ULPS.get(op.id, 16.0),
+            ),
+        ),
+    )
+    if op.id in _SPLINE_TOPS
+    else op
+    for op in OPS
+]
+OPS = [
+    replace(
+        op,
+        degenerate=(
+            *op.degenerate,
+            Degenerate("sigma_ends", _igso3_sigma_ends(op), against_the_oracle(op.id), 16.0),
+        ),
+    )
+    if op.id in ("igso3_log_density", "igso3_angle_cdf", "igso3_score")
+    else op
+    for op in OPS
+]
+OPS = [
+    replace(
+        op,
+        degenerate=(
+            *op.degenerate,
+            *(
+                Degenerate(kind, _fit_points(op, kind), against_the_oracle(op.id), 16.0)
+                for kind in ("coplanar", "coincident")
+            ),
+        ),
+    )
+    if op.id in _FITS
+    else op
+    for op in OPS
+]
+OPS = [
+    replace(
+        op,
+        degenerate=(*op.degenerate, Degenerate("all_equal", _all_equal(op), _all_equal_error(op.id), 16.0)),
+    )
+    if op.id in _MEANS
+    else op
+    for op in OPS
+]
+OPS = [
+    replace(
+        op, degenerate=(*op.degenerate, Degenerate("at_rest", _at_rest(op), against_the_oracle(op.id), 16.0))
+    )
+    if op.id in _RATES
+    else op
+    for op in OPS
+]
 OPS_BY_NAME = {op.id: op for op in OPS}
 
 
