@@ -617,26 +617,6 @@ def _nonzero_or_identity_eager(xp: Any, q: Any, identity: Any) -> tuple[Any, Any
     return xp.where(zero, identity, q), norm, zero
 
 
-@eager_form(of=quaternion_geodesic_distance)
-def quaternion_geodesic_distance_eager(xp: Any, p: Any, q: Any, *, scalar_first: bool = True) -> Any:
-    """:func:`quaternion_geodesic_distance`, eager form: ``r = p* q`` as one contraction of the outer
-    product with constant coefficients (as :func:`quaternion_multiply_eager`), then ``2 atan2(|r_xyz|,
-    |r_w|)``; ``linalg.vector_norm``'s derivative is 0 at the zero vector (the distance's kink, where the
-    componentwise form's :func:`safe_norm` gives 0 too)."""
-    if not scalar_first:
-        p, q = xp.roll(p, 1, -1), xp.roll(q, 1, -1)
-    c, identity, zero = constants(xp, p, _conjugate_hamilton_forms)
-    p, p_norm, _ = _nonzero_or_identity_eager(xp, p, identity)
-    q, q_norm, _ = _nonzero_or_identity_eager(xp, q, identity)
-    r = xp.matmul((p[..., :, None] * q[..., None, :]).flatten(-2), c)
-    angle = 2.0 * xp.atan2(xp.linalg.vector_norm(r[..., 1:], 2, -1, True), xp.abs(r[..., :1]))
-    # the non-finite rows: 0 * |p| is NaN exactly where p holds a NaN or an infinity
-    angle = xp.addcmul(
-        xp.addcmul(angle, cancelling_factor(xp, p_norm), zero), cancelling_factor(xp, q_norm), zero
-    )
-    return angle.view(angle.shape[:-1])
-
-
 @nonfinite_by_arithmetic
 @op(matrix1=(3, 3), matrix2=(3, 3))
 def matrix_geodesic_distance(xp: Any, matrix1: Any, matrix2: Any) -> Any:
@@ -665,23 +645,3 @@ def matrix_geodesic_distance(xp: Any, matrix1: Any, matrix2: Any) -> Any:
     cos2 = trace - 1.0 + 0.0 * cancelling_factor(xp, trace)
     sx, sy, sz = m(2, 1) - m(1, 2), m(0, 2) - m(2, 0), m(1, 0) - m(0, 1)  # 2 sin(angle) axis
     return xp.atan2(safe_norm(xp, sx * sx + sy * sy + sz * sz), cos2)
-
-
-def _geodesic_constants() -> tuple[Any, ...]:
-    return (0.0,)
-
-
-@eager_form(of=matrix_geodesic_distance)
-def matrix_geodesic_distance_eager(xp: Any, matrix1: Any, matrix2: Any) -> Any:
-    """:func:`matrix_geodesic_distance`, eager form, in nine operations: ``trace(a^T b)`` is the sum of
-    the entrywise product, ``axial(M - M^T) = sum_k b_k x a_k`` over the rows ``a_k``, ``b_k`` (one
-    ``linalg.cross``, one sum), and ``addcmul`` adds the non-finite rows' ``0 * trace``.
-    ``linalg.vector_norm``'s derivative is 0 at the zero vector, as :func:`safe_norm`'s."""
-    (zero,) = constants(xp, matrix1, _geodesic_constants)
-    matrix1, matrix2 = match_rank(xp, matrix1, matrix2)  # linalg.cross broadcasts only one rank
-    # unit axes kept until the end: each reduction's backward is then one expand, without the views
-    trace = (matrix1 * matrix2).sum((-2, -1), keepdim=True)
-    axial = xp.linalg.cross(matrix2, matrix1, dim=-1).sum(-2, keepdim=True)
-    cos2 = xp.addcmul(trace - 1.0, cancelling_factor(xp, trace), zero)
-    angle = xp.atan2(xp.linalg.vector_norm(axial, 2, -1, True), cos2)
-    return angle.view(angle.shape[:-2])

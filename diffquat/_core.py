@@ -879,104 +879,21 @@ def _batch_matrix(xp: Any, q: Any, r9: Any) -> Any:
     return r9.view(*q.shape[:-1], 3, 3)
 
 
-def _flat_matrix(xp: Any, matrix: Any) -> Any:
-    """``(..., 3, 3)`` as ``(B, 9)``, the batch flattened (a view where the layout allows)."""
-    return matrix.reshape(-1, 9)
-
-
-def _candidate_forms() -> list[list[float]]:
-    """(9, 20): the four candidates ``c_k = 4 q_k q`` of :func:`_m2q_candidates` and their pivots
-    ``t_k = 4 q_k^2``, each candidate's components in the storage order followed by its pivot (row
-    ``k`` of the (4, 5) layout), as linear forms in the nine entries of a quarter of the matrix; the
-    pivots' constant is the bias (:func:`_candidate_bias`)."""
-    m = {(a, b): 3 * a + b for a in range(3) for b in range(3)}
-    diag = ((1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1))  # t_k - 1 in m00, m11, m22
-    off = {  # 4 q_i q_j (i < j, scalar-first indices) from two off-diagonal entries
-        (0, 1): ((2, 1), (1, 2), -1), (0, 2): ((0, 2), (2, 0), -1), (0, 3): ((1, 0), (0, 1), -1),
-        (1, 2): ((0, 1), (1, 0), 1), (1, 3): ((0, 2), (2, 0), 1), (2, 3): ((1, 2), (2, 1), 1),
-    }  # fmt: skip
-    order = (0, 1, 2, 3)
-    c = [[0.0] * 20 for _ in range(9)]
-    for k in range(4):
-        for slot, i in enumerate((*order, k)):
-            col = 5 * k + slot
-            if i == k:  # the pivot
-                for a in range(3):
-                    c[m[a, a]][col] += 0.25 * diag[k][a]
-            else:
-                first, second, sign = off[min(i, k), max(i, k)]
-                c[m[first]][col] += 0.25
-                c[m[second]][col] += 0.25 * sign
-    return c
-
-
-def _candidate_bias() -> list[float]:
-    """The pivots' constant, a quarter, at every pivot of :func:`_candidate_forms`' layout."""
-    return [0.25 if i == k else 0.0 for k in range(4) for i in (0, 1, 2, 3, k)]
-
-
-def _m2q_constants() -> tuple[list[Any], ...]:
-    forms = _candidate_forms()
-    transposed = [[forms[r][col] for r in range(9)] for col in range(20)]
-    # candidate k's components in the (B, 20) layout: 5 k + slot
-    index = [[5 * k + slot for slot in range(4)] for k in range(4)]
-    # the first non-zero component decides the canonical sign: weights 8, 4, 2, 1 from w to z
-    weights = [[8.0], [4.0], [2.0], [1.0]]
-    return forms, _candidate_bias(), transposed, index, weights
-
-
-def matrix_to_quaternion_eager(xp: Any, m9: Any) -> tuple[Any, Any]:
-    """:func:`matrix_to_quaternion` of the ``(B, 9)`` entries, eager form: ``(q, index)``, the unit
-    quaternion in canonical sign ``(B, 4)`` and the positions of the chosen candidate's components in
-    the (B, 20) layout of :func:`_candidate_forms` (for the cotangent).
-
-    The same method as the componentwise form: the four candidates and their pivots are one ``addmm``
-    of the entries with constant forms; the largest pivot (the first of equal ones, as the two-level
-    choice of :func:`_m2q_choice`) picks one candidate by a gather; it is divided by its largest
-    component (no square can overflow) and normalised. The canonical sign is that of the first non-zero
-    component: the signs (+-1, 0) weighted 8, 4, 2, 1 sum to a number of that sign. A NaN or an
-    infinity anywhere reaches every component: every candidate reads all nine entries, and the largest
-    component propagates it (NONFINITE_BY_ARITHMETIC)."""
-    forms, bias, _, index, weights = constants(xp, m9, _m2q_constants)
-    k20 = xp.addmm(bias, m9, forms)
-    chosen = index[k20[:, 4::5].argmax(-1)]
-    c = k20.gather(-1, chosen)
-    c = c / xp.linalg.vector_norm(c, float("inf"), -1, True)
-    sign = xp.sgn(xp.sgn(c) @ weights)
-    return c * (sign / xp.linalg.vector_norm(c, 2, -1, True)), chosen
-
-
-def matrix_to_quaternion_eager_cotangent(
-    xp: Any, m9: Any, q: Any, chosen: Any, g: Any | None, _: Any = None
-) -> Any:
-    """Reverse mode of :func:`matrix_to_quaternion_eager`: ``dL/dm9`` for ``g = dL/dq``.
-
-    ``q = c / (q . c)`` for the chosen candidate ``c`` (``q . c = +-|c|``), affine in the entries, so
-    ``dL/dc = (g - q (q . g)) / (q . c)``, scattered into the chosen candidate's slots and taken back to
-    the entries by the transposed forms. ``c`` is rebuilt from ``m9``, so that a second derivative
-    sees its dependence on the matrix."""
-    if g is None:
-        return None
-    forms, bias, transposed, _, _ = constants(xp, m9, _m2q_constants)
-    c = xp.addmm(bias, m9, forms).gather(-1, chosen)
-    gc = (g - q * (q * g).sum(-1, keepdim=True)) / (q * c).sum(-1, keepdim=True)
-    return m9.new_zeros((m9.shape[0], 20)).scatter(-1, chosen, gc) @ transposed
-
-
 def eager_rules(scalar_first: bool) -> dict[str, EagerRule]:
     """The eager forms of the conversions in one storage order, as torch registers them beside
     :func:`derivative_rules`: ``(prepare, forward, cotangent, finish)`` with ``u = prepare(xp, x)``
-    (plain operations: a range scaling, a flattening view; scalar-last storage reordered, so that the
-    forms compute in one order and the two storage orders give the same numbers bit for bit),
-    ``forward(xp, u) -> (y, aux)``, ``cotangent(xp, u, y, aux, gy, gaux)`` and the result ``finish(xp,
-    x, y)`` (a view; reordered back)."""
+    (plain operations: a range scaling; scalar-last storage reordered, so that the forms compute in
+    one order and the two storage orders give the same numbers bit for bit), ``forward(xp, u) -> (y,
+    aux)``, ``cotangent(xp, u, y, aux, gy, gaux)`` and the result ``finish(xp, x, y)`` (a view).
+
+    ``matrix_to_quaternion`` has none: an eager form of 15 / 33 operations (the candidates and pivots
+    as one ``addmm``, the pivot by ``argmax``) chose its pivot and canonical sign from sums whose
+    rounding depends on the batch's layout in the BLAS kernel, so that at an exact tie (a half-turn
+    about a diagonal) ``vmap`` and a plain call took opposite signs; the componentwise form sums in one
+    order everywhere."""
 
     def q2m_prepare(xp: Any, q: Any) -> Any:
         return unit_scale(xp, q if scalar_first else xp.roll(q, 1, -1))
-
-    def m2q_finish(xp: Any, matrix: Any, q: Any) -> Any:
-        q = q.view(*matrix.shape[:-2], 4)
-        return q if scalar_first else xp.roll(q, -1, -1)
 
     return {
         "quaternion_to_matrix": (
@@ -984,11 +901,5 @@ def eager_rules(scalar_first: bool) -> dict[str, EagerRule]:
             quaternion_to_matrix_eager,
             quaternion_to_matrix_eager_cotangent,
             _batch_matrix,
-        ),
-        "matrix_to_quaternion": (
-            _flat_matrix,
-            matrix_to_quaternion_eager,
-            matrix_to_quaternion_eager_cotangent,
-            m2q_finish,
         ),
     }

@@ -42,7 +42,6 @@ from typing import Any
 from ._algebra import (
     _exp_eager,
     _hamilton_forms,
-    _log_eager,
     _nonzero_or_identity_eager,
     axis_angle_to_matrix,
     axis_angle_to_matrix_eager,
@@ -758,37 +757,3 @@ def quaternion_plus_eager(
     step = _exp_eager(xp, delta)
     out = _outer(xp, unit, step, c) if right else _outer(xp, step, unit, c)
     return out if scalar_first else xp.roll(out, -1, -1)
-
-
-@eager_form(of=quaternion_minus)
-def quaternion_minus_eager(
-    xp: Any, q1: Any, q2: Any, *, side: str = "right", scalar_first: bool = True
-) -> Any:
-    """:func:`quaternion_minus`, eager form: both unit (:func:`_unit_eager`, so that the product of any
-    two norms in range neither overflows nor underflows), ``q2* q1`` (right) or ``q1 q2*`` (left) by
-    constant coefficients, then
-    ``quaternion_to_axis_angle``'s eager form. A NaN or an infinity in either reaches every component
-    of the product (see :func:`quaternion_plus_eager`), and from there every component of the log."""
-    right = check_side("quaternion_minus", side)
-    if not scalar_first:
-        q1, q2 = xp.roll(q1, 1, -1), xp.roll(q2, 1, -1)
-    _, first, second, identity, one = constants(xp, q1, _plus_constants)
-    a, b = _unit_eager(xp, q1, identity, one), _unit_eager(xp, q2, identity, one)
-    return _log_eager(xp, _outer(xp, b, a, first) if right else _outer(xp, a, b, second))[0]
-
-
-@eager_form(of=so3_minus)
-def so3_minus_eager(
-    xp: Any,
-    matrix1: Any,
-    matrix2: Any,
-    *,
-    side: str = "right",
-    to_quaternion: Conversion = matrix_to_quaternion,
-) -> Any:
-    """:func:`so3_minus`, eager form: the relative rotation as one ``matmul``, then
-    ``matrix_to_axis_angle``'s eager form."""
-    right = check_side("so3_minus", side)
-    a, b = matrix1, matrix2
-    relative = xp.matmul(b.mT, a) if right else xp.matmul(a, b.mT)
-    return matrix_to_axis_angle_eager(xp, relative, to_quaternion=to_quaternion)

@@ -7,11 +7,15 @@ skipped. Eager calls only: a second or so."""
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
 from typing import Any
 
 import pytest
 import torch
 
+# benchmarks/ is a folder of the repository, not of the installed package: importable from its root
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from benchmarks import ops
 
 RECORDED = ops.load()
