@@ -771,6 +771,13 @@ def constants(xp: Any, like: Any, make: Callable[[], tuple[Any, ...]]) -> tuple[
     host-to-device copy on a GPU), and a map's forward makes all of them, those its rules read
     included, so that no backward pass makes one either."""
     key = (make, like.dtype, like.device)
+    # only for a plain tensor: a tracer's (make_fx's FakeTensor, a FunctionalTensor) would be cached
+    # and handed to later eager calls, which then return fake tensors
+    if type(like) is not getattr(xp, "Tensor", type(like)):
+        return tuple(
+            xp.tensor(rows, dtype=xp.int64 if _integers(rows) else like.dtype, device=like.device)
+            for rows in make()
+        )
     value = _CONSTANTS.get(key)
     if value is None:
         value = _CONSTANTS[key] = tuple(
