@@ -373,8 +373,8 @@ def matrix_to_quaternion(xp: Any, matrix: Any, *, scalar_first: bool = True) -> 
     matrix (sums of four quarters cannot overflow) and divided by its largest component before its
     norm is taken (squares of components above ~1.8e19 overflow float32).
     """
-    pivots, candidates = _m2q_candidates(_quarter(xp, matrix), 0.25)
-    return join_quaternion(xp, *_m2q_unit(xp, *_m2q_select(xp, pivots, candidates)), scalar_first)
+    _, candidates = _m2q_candidates(_quarter(xp, matrix), 0.25)
+    return join_quaternion(xp, *_m2q_unit(xp, *_m2q_select(xp, matrix, candidates)), scalar_first)
 
 
 def _quarter(xp: Any, matrix: Any) -> Any:
@@ -424,19 +424,30 @@ def _m2q_candidates(matrix: Any, one: Any) -> tuple[tuple[Any, ...], list[tuple[
     return (t0, t1, t2, t3), candidates
 
 
-def _m2q_choice(xp: Any, pivots: tuple[Any, ...]) -> tuple[Any, Any, Any]:
+def _m2q_choice(xp: Any, matrix: Any) -> tuple[Any, Any, Any]:
     """The largest pivot as a two-level choice: between pivots (0, 1) and (2, 3), then within the
-    pair; ties go to the lower index."""
-    t0, t1, t2, t3 = pivots
-    return xp.maximum(t0, t1) >= xp.maximum(t2, t3), t0 >= t1, t2 >= t3
+    pair; ties go to the lower index.
+
+    Decided in exact arithmetic from the diagonal ``d``: each difference of two pivots is twice a sum or
+    difference of two diagonal entries (``t0 - t1 = 2 (d1 + d2)``, ``t2 - t3 = 2 (d1 - d2)``, ...), and
+    the sign of a rounded sum of two numbers is the sign of the exact sum (overflow keeps it too). So
+    every path, however it rounds or orders the four-term pivots themselves (a fused loop, a BLAS
+    product laid out per ``vmap``), makes the same choice, ties included: the half-turns about a
+    diagonal tie three pivots exactly."""
+    d0, d1, d2 = matrix[..., 0, 0], matrix[..., 1, 1], matrix[..., 2, 2]
+    use0, use2 = d1 + d2 >= 0, d1 >= d2  # t0 >= t1, t2 >= t3
+    # the better of (0, 1) against the better of (2, 3): t0 >= t2, t0 >= t3, t1 >= t2 or t1 >= t3, as
+    # d0 + e >= 0 (a selection of numbers, not of booleans: onnxruntime has no Where on booleans)
+    e = xp.where(use2, xp.where(use0, d2, -d1), xp.where(use0, d1, -d2))
+    return d0 + e >= 0, use0, use2
 
 
 def _m2q_select(
-    xp: Any, pivots: tuple[Any, ...], candidates: list[tuple[Any, Any, Any, Any]]
+    xp: Any, matrix: Any, candidates: list[tuple[Any, Any, Any, Any]]
 ) -> tuple[Any, Any, Any, Any]:
     """Components (w, x, y, z) of the candidate of the largest pivot. Every candidate is finite, so
     the selection is safe for reverse mode, and it happens before the one division."""
-    use01, use0, use2 = _m2q_choice(xp, pivots)
+    use01, use0, use2 = _m2q_choice(xp, matrix)
 
     def pick(i: int) -> Any:
         return _m2q_pick(xp, use01, use0, use2, *(candidate[i] for candidate in candidates))
@@ -464,7 +475,7 @@ def _m2q_recover_scale(xp: Any, matrix: Any, q: Any) -> tuple[Any, Any, Any, Any
     as the components are, not the maximum of the four: the derivative of a maximum splits between
     tied pivots (half-turns about a diagonal tie three), which made the second derivative wrong there."""
     pivots = _m2q_pivots(matrix, 1.0)
-    use01, use0, use2 = _m2q_choice(xp, pivots)
+    use01, use0, use2 = _m2q_choice(xp, matrix)
     chosen = functools.partial(_m2q_pick, xp, use01, use0, use2)
     return use01, use0, use2, chosen(*split_quaternion(q, True)) / chosen(*pivots)
 
@@ -886,21 +897,111 @@ def _batch_matrix(xp: Any, q: Any, r9: Any) -> Any:
     return r9.view(*q.shape[:-1], 3, 3)
 
 
+# columns of matrix_to_quaternion_eager's product: the pivots, the six off-diagonal sums, the six
+# choice quantities; and the columns of the candidate (w, x, y, z) of pivot k: row k of the symmetric K
+_OFF, _CHOICE = range(4, 10), range(10, 16)
+_K_ROWS = ((0, 4, 5, 6), (4, 1, 7, 8), (5, 7, 2, 9), (6, 8, 9, 3))
+
+
+def _m2q_forms() -> tuple[Any, ...]:
+    """The constants of :func:`matrix_to_quaternion_eager`: ``(A, bias, bits, table, signs, At)``.
+    ``A`` (9, 16) maps the row-major entries to a quarter of the pivots (with ``bias``) and of the
+    off-diagonal sums of :func:`_m2q_candidates`, and to the six sums and differences of two diagonal
+    entries whose signs are :func:`_m2q_choice` (coefficients +-1 and 0: one rounding of a two-term
+    sum, whatever order the product sums in). ``table`` (64, 4) maps the choice's six bits (weighed by
+    ``bits``) to the columns of the chosen candidate (w, x, y, z); ``signs`` weighs the candidate's
+    signs so that the first non-zero component decides the canonical sign (8, 4, 2, 1); ``At`` (10, 9)
+    is the transpose of the first ten columns."""
+    a = [[0.0] * 16 for _ in range(9)]
+    diagonal = (0, 4, 8)
+    for k, signs in enumerate(((1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1))):
+        for entry, sign in zip(diagonal, signs, strict=True):
+            a[entry][k] = 0.25 * sign
+    # wx = m21 - m12, wy = m02 - m20, wz = m10 - m01, xy = m01 + m10, xz = m02 + m20, yz = m12 + m21
+    for column, (i, j, sign) in zip(
+        _OFF, ((7, 5, -1), (2, 6, -1), (3, 1, -1), (1, 3, 1), (2, 6, 1), (5, 7, 1)), strict=True
+    ):
+        a[i][column], a[j][column] = 0.25, 0.25 * sign
+    # d1 + d2, d1 - d2, d0 + d2, d0 + d1, d0 - d1, d0 - d2 (see _m2q_choice)
+    for column, (i, j, sign) in zip(
+        _CHOICE, ((1, 2, 1), (1, 2, -1), (0, 2, 1), (0, 1, 1), (0, 1, -1), (0, 2, -1)), strict=True
+    ):
+        a[diagonal[i]][column], a[diagonal[j]][column] = 1.0, float(sign)
+    table = []
+    for code in range(64):
+        bit = [bool(code >> j & 1) for j in range(6)]
+        use0, use2 = bit[0], bit[1]
+        use01 = (bit[2] if use2 else bit[3]) if use0 else (bit[4] if use2 else bit[5])
+        table.append(list(_K_ROWS[(0 if use0 else 1) if use01 else (2 if use2 else 3)]))
+    transposed = [[a[i][j] for i in range(9)] for j in range(10)]
+    bias = [0.25] * 4 + [0.0] * 12
+    return a, bias, [1, 2, 4, 8, 16, 32], table, [[8.0], [4.0], [2.0], [1.0]], transposed
+
+
+def matrix_to_quaternion_eager(xp: Any, m: Any) -> tuple[Any, Any, Any]:
+    """:func:`matrix_to_quaternion` of the row-major entries ``m`` ``(B, 9)``, eager form: ``(q, cols,
+    den)``, the quaternions ``(B, 4)`` scalar first (scalar-last storage is reordered after, so that
+    both orders give the same numbers bit for bit), the columns of the chosen candidate and
+    ``+-|c|`` ``(B, 1)``, which the rule reuses.
+
+    One ``addmm`` gives a quarter of the four pivots and of the six off-diagonal sums (the candidates'
+    entries, as :func:`_m2q_candidates`) and the six two-entry sums whose signs choose the pivot
+    exactly, as :func:`_m2q_choice` does, so that this form and the componentwise one choose alike at
+    every tie. The choice's bits index a table of the chosen candidate's columns, gathered; the
+    candidate is divided by its largest entry before its norm (no square overflows), and by the norm
+    carrying the canonical sign: the sign of the candidate's signs weighed 8, 4, 2, 1, so that the
+    first non-zero component decides (never 0: the chosen pivot is positive). A NaN or an infinity in
+    the matrix makes every column of the product NaN (``0 * x``), and with them the quaternion."""
+    a, bias, bits, table, signs, _ = constants(xp, m, _m2q_forms)
+    p = xp.addmm(bias, m, a)
+    cols = table[((p[:, 10:] >= 0) * bits).sum(-1)]
+    c = p.gather(1, cols)
+    big = xp.linalg.vector_norm(c, float("inf"), -1, True)
+    norm = xp.linalg.vector_norm(c / cancelling_factor(xp, big), 2, -1, True)
+    den = norm.copysign(c.sign() @ signs) * big
+    return c / den, cols, den
+
+
+def matrix_to_quaternion_eager_cotangent(
+    xp: Any, m: Any, q: Any, cols: Any, den: Any, g: Any | None, gcols: Any, gden: Any | None
+) -> Any:
+    """Reverse mode of :func:`matrix_to_quaternion_eager`: ``dL/dm`` ``(B, 9)`` for ``g = dL/dq`` and
+    ``gden = dL/dden`` (None where not asked for; a second derivative asks for it).
+
+    ``q = c / den`` with ``den = +-|c|``: ``dL/dc = (g - q (q . g)) / den + gden q``, which goes to the
+    chosen candidate's columns of the product (a scatter) and through its transposed coefficients to
+    the entries."""
+    gc = None if g is None else (g - q * (q * g).sum(-1, keepdim=True)) / den
+    if gden is not None:
+        gc = gden * q if gc is None else gc + gden * q
+    if gc is None:
+        return None
+    *_, transposed = constants(xp, m, _m2q_forms)
+    return q.new_zeros(q.shape[0], 10).scatter(1, cols, gc) @ transposed
+
+
 def eager_rules(scalar_first: bool) -> dict[str, EagerRule]:
     """The eager forms of the conversions in one storage order, as torch registers them beside
     :func:`derivative_rules`: ``(prepare, forward, cotangent, finish)`` with ``u = prepare(xp, x)``
     (plain operations: a range scaling; scalar-last storage reordered, so that the forms compute in
     one order and the two storage orders give the same numbers bit for bit), ``forward(xp, u) -> (y,
-    aux)``, ``cotangent(xp, u, y, aux, gy, gaux)`` and the result ``finish(xp, x, y)`` (a view).
+    *aux)``, ``cotangent(xp, u, y, *aux, gy, *gaux)`` and the result ``finish(xp, x, y)`` (a view).
 
-    ``matrix_to_quaternion`` has none: an eager form of 15 / 33 operations (the candidates and pivots
-    as one ``addmm``, the pivot by ``argmax``) chose its pivot and canonical sign from sums whose
-    rounding depends on the batch's layout in the BLAS kernel, so that at an exact tie (a half-turn
-    about a diagonal) ``vmap`` and a plain call took opposite signs; the componentwise form sums in one
-    order everywhere."""
+    ``matrix_to_quaternion``'s input is the nine entries ``(B, 9)``; its form computes scalar first,
+    and scalar-last storage is reordered after (``roll``). Its choice of pivot is exact
+    (:func:`_m2q_choice`), so the two forms and every layout of a batch choose alike at every tie."""
 
     def q2m_prepare(xp: Any, q: Any) -> Any:
         return unit_scale(xp, q if scalar_first else xp.roll(q, 1, -1))
+
+    def m2q_prepare(xp: Any, matrix: Any) -> Any:
+        return matrix.reshape(-1, 9)
+
+    def m2q(xp: Any, m: Any) -> tuple[Any, Any, Any]:
+        return matrix_to_quaternion_eager(xp, m)
+
+    def m2q_finish(xp: Any, matrix: Any, q: Any) -> Any:
+        return (q if scalar_first else xp.roll(q, -1, -1)).view(*matrix.shape[:-2], 4)
 
     return {
         "quaternion_to_matrix": (
@@ -909,4 +1010,5 @@ def eager_rules(scalar_first: bool) -> dict[str, EagerRule]:
             quaternion_to_matrix_eager_cotangent,
             _batch_matrix,
         ),
+        "matrix_to_quaternion": (m2q_prepare, m2q, matrix_to_quaternion_eager_cotangent, m2q_finish),
     }

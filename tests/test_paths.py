@@ -19,16 +19,16 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import torch
-from cases import CASES_BY_NAME, oracle_quaternion_to_matrix
+from cases import CASES_BY_NAME, oracle_quaternion_to_matrix, uniform_quaternions
 
 import diffquat.jax as dj
 import diffquat.torch as dq
 from diffquat import _algebra, _backend, _core, _euler, _lie
-from diffquat.torch._custom import form
+from diffquat.torch._custom import componentwise, form
 
 Q2M, M2Q = "_quaternion_to_matrix_eager", "_matrix_to_quaternion_eager"  # the Functions
 # the eager forms' Functions (few vectorised operations, no copy: _custom._lean)
-Q2M_LEAN = "_quaternion_to_matrix_lean"
+Q2M_LEAN, M2Q_LEAN = "_quaternion_to_matrix_lean", "_matrix_to_quaternion_lean"
 
 
 def test_eager_calls_take_the_function_and_captures_the_formula() -> None:
@@ -39,14 +39,18 @@ def test_eager_calls_take_the_function_and_captures_the_formula() -> None:
     q = torch.randn(5, 4, dtype=torch.float64, requires_grad=True)
     assert Q2M_LEAN + "Backward" in _function_nodes(dq.quaternion_to_matrix(q))
     m = dq.quaternion_to_matrix(q.detach()).requires_grad_(True)
-    assert M2Q + "Backward" in _function_nodes(dq.matrix_to_quaternion(m))
+    assert M2Q_LEAN + "Backward" in _function_nodes(dq.matrix_to_quaternion(m))
     with torch.autograd.forward_ad.dual_level():
         assert Q2M + "Backward" in _function_nodes(dq.quaternion_to_matrix(q))
+        assert M2Q + "Backward" in _function_nodes(dq.matrix_to_quaternion(m))
     with pytest.warns(DeprecationWarning):  # torch.jit.trace is deprecated in torch 2.13
         traced = torch.jit.trace(dq.matrix_to_quaternion, m.detach())
     assert "PythonOp" not in str(traced.graph)
     other = dq.quaternion_to_matrix(torch.randn(5, 4, dtype=torch.float64))
-    torch.testing.assert_close(traced(other), dq.matrix_to_quaternion(other), rtol=0, atol=0)
+    with componentwise():  # the trace recorded the componentwise form: the same numbers
+        torch.testing.assert_close(traced(other), dq.matrix_to_quaternion(other), rtol=0, atol=0)
+    # and the eager form's to rounding
+    torch.testing.assert_close(traced(other), dq.matrix_to_quaternion(other), rtol=0, atol=4e-16)
     ops = _traced_ops(dq.matrix_to_quaternion, m.detach())
     assert not any("Function" in op or "autograd" in op for op in ops), ops
 
@@ -86,6 +90,39 @@ def test_the_form_of_a_call_in_each_context() -> None:
         assert forms(lambda: torch.jit.trace(record, x, check_trace=False)) == ["captured"]
     torch._dynamo.reset()
     assert forms(lambda: torch.compile(record, fullgraph=True, backend="eager")(x)) == ["captured"]
+
+
+def test_reduced_precision_products_take_the_componentwise_form() -> None:
+    """The eager forms contract with constant matrices; where a user lowers float32 products to TF32
+    or bf16 (``torch.set_float32_matmul_precision("high")``), float32 calls take the componentwise
+    form (no product dispatched: three digits kept), at the oracle's accuracy; float64 calls keep the
+    eager form."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class Ops(TorchDispatchMode):
+        def __init__(self) -> None:
+            super().__init__()
+            self.ops: set[str] = set()
+
+        def __torch_dispatch__(self, func: Any, types: Any, args: Any = (), kwargs: Any = None) -> Any:
+            self.ops.add(str(func))
+            return func(*args, **(kwargs or {}))
+
+    q = torch.tensor(uniform_quaternions(64, 0))
+    expected = torch.tensor(oracle_quaternion_to_matrix(q.numpy()))
+    before = torch.get_float32_matmul_precision()
+    try:
+        torch.set_float32_matmul_precision("high")
+        for dtype, eager in ((torch.float32, False), (torch.float64, True)):
+            with Ops() as mode:
+                r = dq.quaternion_to_matrix(q.to(dtype).requires_grad_(True))
+                dq.matrix_to_quaternion(r)
+                dq.quaternion_multiply(q.to(dtype), q.to(dtype))
+            products = {name for name in mode.ops if name.split(".")[1] in ("mm", "addmm", "matmul", "bmm")}
+            assert bool(products) == eager, (dtype, products)
+            torch.testing.assert_close(r.detach().double(), expected, rtol=0, atol=4 * torch.finfo(dtype).eps)
+    finally:
+        torch.set_float32_matmul_precision(before)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -197,13 +234,13 @@ _FIXED = _algebra.axis_angle_to_matrix(
     torch, torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64) * 0.7 / 14**0.5
 )
 COMPOSITES = [
-    (dq.matrix_to_axis_angle, _algebra.matrix_to_axis_angle, M2Q),
+    (dq.matrix_to_axis_angle, _algebra.matrix_to_axis_angle, M2Q_LEAN),
     (
         lambda a: dq.euler_angles_to_matrix(a, "ZXZ"),
         lambda xp, a: _euler.euler_angles_to_matrix(xp, a, "ZXZ"),
         Q2M_LEAN,
     ),
-    (dq.so3_log, _lie.so3_log, M2Q),
+    (dq.so3_log, _lie.so3_log, M2Q_LEAN),
     # plus and minus, the second argument fixed (a rotation about (1, 2, 3) by 0.7 rad)
     (
         lambda d: dq.so3_plus(_FIXED, d, side="left"),
@@ -213,7 +250,7 @@ COMPOSITES = [
     (
         lambda m: dq.so3_minus(m, _FIXED),
         lambda xp, m: _lie.so3_minus(xp, m, _FIXED),
-        M2Q,
+        M2Q_LEAN,
     ),
 ]
 
@@ -236,7 +273,7 @@ def test_composites_take_the_registered_conversion(public: Any, composite: Any, 
     special = [[0.0, 0.0, 0.0], [np.pi, 0.0, 0.0], [0.0, 0.0, np.pi - 1e-9], [0.0, 3.2, 0.0]]
     rest = torch.randn(12, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
     x = torch.cat([torch.tensor(special, dtype=torch.float64), rest])
-    if function == M2Q:
+    if function == M2Q_LEAN:
         x = _algebra.axis_angle_to_matrix(torch, x)
     x.requires_grad_(True)
     ours = public(x)

@@ -84,8 +84,31 @@ def componentwise() -> Iterator[None]:
 
 
 def eager(x: Tensor) -> bool:
-    """Whether a call takes a map's eager form: everywhere but under graph capture (:func:`form`)."""
-    return not _FORCED and not (torch.compiler.is_compiling() or is_tracing())  # type: ignore[no-untyped-call]
+    """Whether a call takes a map's eager form: everywhere but under graph capture (:func:`form`), and
+    where float32 matrix products are exact IEEE products (:func:`exact_products`)."""
+    return (
+        not _FORCED
+        and not (torch.compiler.is_compiling() or is_tracing())  # type: ignore[no-untyped-call]
+        and exact_products(x)
+    )
+
+
+# The eager forms contract with constant coefficient matrices (matmul, addmm). Where a user lowers the
+# precision of float32 products (torch.set_float32_matmul_precision("high"), common on GPUs: TF32 or
+# bf16 keeps 10 or 7 bits of each operand), those would lose about 3 digits: such calls take the
+# componentwise form, whose elementwise arithmetic no such setting touches. Read through torch's
+# getter (a quarter of the public attribute's cost, per call), by device: cuBLAS on CUDA, oneDNN on CPU.
+_PRECISION = getattr(torch._C, "_get_fp32_precision_getter", None)
+_MATMUL_BACKEND = {"cuda": "cuda", "cpu": "mkldnn"}
+
+
+def exact_products(x: Tensor) -> bool:
+    """Whether float32 matrix products on ``x``'s device are exact IEEE products (the default), or
+    ``x`` is not float32. Unknown devices and torch builds without the setting count as exact."""
+    backend = _MATMUL_BACKEND.get(x.device.type)
+    if x.dtype != torch.float32 or backend is None or _PRECISION is None:
+        return True
+    return _PRECISION(backend, "matmul") in ("none", "ieee")
 
 
 def choose(core_fn: Callable[..., Any], x: Tensor) -> Callable[..., Any]:
@@ -238,7 +261,13 @@ def custom_derivative(
 
     def bound(xp: Any, x: Tensor) -> Tensor:
         chosen = form(x)
-        if eager is not None and lean is not None and chosen != "captured" and forward_ad._current_level < 0:
+        if (
+            eager is not None
+            and lean is not None
+            and chosen != "captured"
+            and forward_ad._current_level < 0
+            and exact_products(x)
+        ):
             prepare, formula, *_, finish = eager
             u = prepare(torch, x)
             return finish(torch, x, (lean(u) if chosen == "rule" else formula(torch, u))[0])
@@ -258,13 +287,13 @@ def custom_derivative(
 
 
 def _lean(
-    forward: Callable[..., tuple[Tensor, Tensor]], cotangent: Callable[..., Tensor | None], name: str
-) -> Callable[[Tensor], tuple[Tensor, Tensor]]:
-    """An eager form ``forward(xp, u) -> (y, aux)`` with its rule ``cotangent(xp, u, y, aux, gy, gaux)``
-    (either cotangent None where none is given) as an ``autograd.Function`` that adds no operation of
-    its own: no copy of the input (forward mode needs one, and forward mode takes the componentwise
+    forward: Callable[..., tuple[Tensor, ...]], cotangent: Callable[..., Tensor | None], name: str
+) -> Callable[[Tensor], tuple[Tensor, ...]]:
+    """An eager form ``forward(xp, u) -> (y, *aux)`` with its rule ``cotangent(xp, u, y, *aux, gy,
+    *gaux)`` (a cotangent None where none is given) as an ``autograd.Function`` that adds no operation
+    of its own: no copy of the input (forward mode needs one, and forward mode takes the componentwise
     Function), no zero cotangent materialised for an output that is not used. ``aux`` is what the
-    rule reuses from the forward pass (a norm, the chosen candidate's positions): an output, so that a
+    rule reuses from the forward pass (a norm, the chosen candidate's positions): outputs, so that a
     floating one's dependence on ``u`` is recorded (its cotangent, given in a second derivative, is
     the rule's to take back to ``u``); an integer one has none."""
 
@@ -272,21 +301,21 @@ def _lean(
         generate_vmap_rule = True
 
         @staticmethod
-        def forward(u: Tensor) -> tuple[Tensor, Tensor]:
+        def forward(u: Tensor) -> tuple[Tensor, ...]:
             return forward(torch, u)
 
         @staticmethod
-        def setup_context(ctx: Any, inputs: tuple[Tensor], output: tuple[Tensor, Tensor]) -> None:
+        def setup_context(ctx: Any, inputs: tuple[Tensor], output: tuple[Tensor, ...]) -> None:
             ctx.set_materialize_grads(False)
             ctx.save_for_backward(inputs[0], *output)
 
         @staticmethod
-        def backward(ctx: Any, gy: Tensor | None, gaux: Tensor | None) -> Tensor | None:
-            return cotangent(torch, *ctx.saved_tensors, gy, gaux)
+        def backward(ctx: Any, *grads: Tensor | None) -> Tensor | None:
+            return cotangent(torch, *ctx.saved_tensors, *grads)
 
     Lean = type(f"_{name}_lean", (Lean,), {"__doc__": Lean.__doc__})  # type: ignore[assignment,misc]
 
-    def apply(u: Tensor) -> tuple[Tensor, Tensor]:
+    def apply(u: Tensor) -> tuple[Tensor, ...]:
         return Lean.apply(u)  # type: ignore[no-untyped-call]
 
     return apply
