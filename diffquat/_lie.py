@@ -757,3 +757,22 @@ def quaternion_plus_eager(
     step = _exp_eager(xp, delta)
     out = _outer(xp, unit, step, c) if right else _outer(xp, step, unit, c)
     return out if scalar_first else xp.roll(out, -1, -1)
+
+
+@eager_form(of=so3_minus)
+def so3_minus_eager(
+    xp: Any,
+    matrix1: Any,
+    matrix2: Any,
+    *,
+    side: str = "right",
+    to_quaternion: Conversion = matrix_to_quaternion,
+) -> Any:
+    """:func:`so3_minus`, eager form: the same relative rotation (one ``matmul``, as the componentwise
+    form computes it in eager torch), then ``matrix_to_axis_angle``'s eager form. Its quaternion's
+    pivot is chosen exactly (``_core._m2q_choice``), so both forms give a half-turn the same sign."""
+    right = check_side("so3_minus", side)
+    a, b = match_rank(xp, matrix1, matrix2)
+    b_t = xp.swapaxes(b, -1, -2)
+    relative = small_matmul(xp, b_t, a) if right else small_matmul(xp, a, b_t)
+    return matrix_to_axis_angle_eager(xp, relative, to_quaternion=to_quaternion)
