@@ -256,19 +256,26 @@ def matrix_to_rotation_6d(xp: Any, matrix: Any, *, layout: str = "columns") -> A
     return out + zero_or_nan(xp, cancelling_factor(xp, matrix), 2)[..., None]
 
 
-def _6d_indices() -> tuple[Any, ...]:
-    # the positions of the first two columns and of the first two rows in the row-major entries
-    return [0, 3, 6, 1, 4, 7], [0, 1, 2, 3, 4, 5]
+def _6d_constants() -> tuple[Any, ...]:
+    # the positions of the first two columns in the row-major entries, and a (9, 6) matrix of zeros
+    return [0, 3, 6, 1, 4, 7], [[0.0] * 6 for _ in range(9)]
 
 
 @eager_form(of=matrix_to_rotation_6d)
 def matrix_to_rotation_6d_eager(xp: Any, matrix: Any, *, layout: str = "columns") -> Any:
-    """:func:`matrix_to_rotation_6d`, eager form: one gather of six of the nine flattened entries, and
-    the sum of ``0 * entries`` for the non-finite rows (the very numbers, in five operations)."""
-    columns, rows = constants(xp, matrix, _6d_indices)
-    flat = matrix.flatten(-2)
-    out = flat[..., columns if _layout_axis("matrix_to_rotation_6d", layout) == -1 else rows]
-    return out + (cancelling_factor(xp, flat) * 0.0).sum(-1, keepdim=True)
+    """:func:`matrix_to_rotation_6d`, eager form, in three operations for a batch of one dimension (a
+    view of the flattened entries, the gather of six, one ``addmm``; a view back for any other): the
+    non-finite rows as the product of all nine entries with a (9, 6) matrix of zeros added to the six
+    (``0 * x`` is +-0 for a finite ``x``, NaN for NaN and +-inf, and a sum of zeros is 0: the very
+    numbers), where a sum of ``0 * entries`` and its addition took two more. The product reads the
+    entries as a constant of differentiation (its derivative is 0), so the backward pass is that of
+    the gather alone."""
+    columns, zeros = constants(xp, matrix, _6d_constants)
+    flat = matrix.reshape(-1, 9)
+    picked = flat[:, columns] if _layout_axis("matrix_to_rotation_6d", layout) == -1 else flat[:, :6]
+    out = xp.addmm(picked, cancelling_factor(xp, flat), zeros)
+    # a batch of one dimension is already in its shape (a view to it would be one more operation)
+    return out if matrix.ndim == 3 else out.view(*matrix.shape[:-2], 6)
 
 
 # ---------------------------------------------------------------------------------------------------
