@@ -15,6 +15,7 @@ from collections.abc import Callable
 from typing import Any
 
 from ._core import (
+    NONFINITE_BY_ARITHMETIC,
     cancelling_factor,
     canonical,
     constants,
@@ -121,6 +122,116 @@ def rotation_6d_to_matrix(xp: Any, d6: Any, *, layout: str = "columns") -> Any:
     return xp.stack([b1, b2, b3], axis=axis)
 
 
+def _six_d_constants() -> tuple[Any, ...]:
+    # the rows a zero a1 and a zero a2 take (b1 = e_x; a2 stays zero, so that its sine is 0), the axes
+    return [[1.0, 0.0, 0.0], [0.0, 0.0, 0.0]], [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+
+
+# The eager form's own name: its arithmetic makes every entry of a non-finite row NaN (the Backend
+# reads the name of the function it runs), where the componentwise form leaves that to the backend.
+NONFINITE_BY_ARITHMETIC.add("rotation_6d_to_matrix_eager")
+
+
+def rotation_6d_to_matrix_eager(xp: Any, d6: Any, axis: int) -> tuple[Any, Any]:
+    """:func:`rotation_6d_to_matrix`, eager form, with the 6D vectors stacked along ``axis`` (-1:
+    columns, -2: rows): ``(R, parallel)``, ``parallel`` (``(..., 1)``, bool) where ``b2`` is the
+    fallback's. Twenty-two operations (``linalg.cross`` and ``linalg.vector_norm`` are one each).
+
+    The same map by cross products (``b1``, ``a2`` unit here): ``|b1 x a2|`` is the sine between
+    them, and ``v = (b1 x w) x b1 = w - (b1 . w) b1`` is Gram-Schmidt's remainder of ``w`` (``a2``, or
+    the fallback's axis ``e_k``). ``b1 x w`` has the remainder's rounding error (``eps / sin`` of its
+    size, as one Gram-Schmidt pass), but ``v``, a cross product with ``b1``, is orthogonal to ``b1``
+    to a few ulps of ``|v|`` whatever that error (what the componentwise form's second pass buys). So
+    ``b2 = v / |v|`` and ``b3 = b1 x b2`` are orthonormal to a few ulps, and ``b2`` has the
+    componentwise form's conditioning, ``eps / sin``.
+
+    Each vector is divided by its largest component (each its own: 1e30 and 1e-30 columns), then
+    normalised; a zero ``a1`` takes ``e_x`` and a zero ``a2`` stays zero (sine 0: the fallback), by
+    one selection of the two rows, whose other branch (``0 / 0``) is never read: the rule below
+    differentiates the map itself, not these operations. ``parallel``: the sine at most 8 eps, as
+    the componentwise form's remainder at most 8 eps ``|a2|``; the fallback's axis is the first of
+    the smallest ``|b1_k|`` (``argmin``; a tie of ``|a1|`` components is a tie of ``|b1|``'s).
+
+    A NaN or an infinity makes its vector's row NaN (the largest component, or ``inf / inf``), and
+    with it ``c``, ``b2`` and ``b3`` (a NaN sine is no fallback); ``b1`` adds ``0 * sine``, so that
+    ``a2``'s reaches it too (NONFINITE_BY_ARITHMETIC)."""
+    zero_rows, axes = constants(xp, d6, _six_d_constants)
+    pair = d6.reshape(*d6.shape[:-1], 2, 3)
+    big = xp.linalg.vector_norm(pair, float("inf"), -1, True)
+    scaled = pair / big
+    unit = xp.where(big == 0, zero_rows, scaled / xp.linalg.vector_norm(scaled, 2, -1, True))
+    b1, a2 = unit.unbind(-2)
+    sine = xp.linalg.vector_norm(xp.linalg.cross(b1, a2), 2, -1, True)
+    parallel = sine <= _PARALLEL_BELOW * xp.finfo(d6.dtype).eps
+    w = xp.where(parallel, axes[b1.abs().argmin(-1)], a2)
+    v = xp.linalg.cross(xp.linalg.cross(b1, w), b1)
+    b2 = v / xp.linalg.vector_norm(v, 2, -1, True)
+    return xp.stack([xp.add(b1, sine, alpha=0.0), b2, xp.linalg.cross(b1, b2)], axis), parallel
+
+
+def rotation_6d_to_matrix_eager_cotangent(
+    xp: Any, d6: Any, r: Any, parallel: Any, g: Any | None, gparallel: Any, axis: int
+) -> Any:
+    """Reverse mode of :func:`rotation_6d_to_matrix_eager`: ``dL/d6`` ``(..., 6)`` for ``g = dL/dR``.
+
+    With ``b1, b2, b3`` the rows of ``B`` (``R`` or its transpose) and ``W = B G^T - G B^T`` (``G``
+    likewise), ``W_ij = b_i . g_j - b_j . g_i``, only the rotation's tangent is read:
+
+    - ``dL/da2 = W_32 b3 / (b2 . a2)``: ``a2`` turns ``b2`` towards ``b3`` at the rate ``1 / |u2|``,
+      ``|u2| = b2 . a2`` the length of its part orthogonal to ``b1``; 0 where ``b2`` is the
+      fallback's (it does not read ``a2``);
+    - ``dL/da1 = (W_21 b2 + W_31 b3 - t W_32 b3) / |a1|`` with ``t = (b1 . w) / (b2 . w)`` the
+      cotangent of the angle between ``a1`` and ``w`` (``a2``, or the fallback's axis); 0 where
+      ``a1`` is zero (``b1 = e_x`` is constant).
+
+    Both read the scaled vectors (``|a1| = |s1| m1`` with ``m1`` the largest component), and a zero
+    denominator is taken as infinite, so that each factor is finite in every branch, its derivative
+    too: the rule is written in ``d6`` and in the output, so its own autodiff is the second
+    derivative."""
+    if g is None:
+        return None
+    _, axes = constants(xp, d6, _six_d_constants)
+    basis, gb = (r, g) if axis == -2 else (r.mT, g.mT)
+    a = basis @ gb.mT
+    w21, w31, w32 = (a - a.mT).flatten(-2)[..., [3, 6, 7]].unsqueeze(-1).unbind(-2)
+    b1, b2, b3 = basis.unbind(-2)
+    pair = d6.reshape(*d6.shape[:-1], 2, 3)
+    big = cancelling_factor(xp, xp.linalg.vector_norm(pair, float("inf"), -1, True))
+    big = xp.where(big > 0, big, 1.0)
+    s1, s2 = (pair / big).unbind(-2)
+    m1, m2 = big.unbind(-2)
+    w = xp.where(parallel, axes[b1.abs().argmin(-1)], s2)
+    t = (b1 * w).sum(-1, keepdim=True) / (b2 * w).sum(-1, keepdim=True)
+    n1 = xp.linalg.vector_norm(s1, 2, -1, True) * m1
+    d1 = xp.where(n1 > 0, n1, float("inf"))
+    d2 = xp.where(parallel, float("inf"), (b2 * s2).sum(-1, keepdim=True) * m2)
+    g1 = (w21 * b2 + (w31 - t * w32) * b3) / d1
+    g2 = w32 * b3 / d2
+    return xp.stack([g1, g2], -2).reshape(d6.shape)
+
+
+def six_d_eager_rules() -> dict[int, tuple[Callable[..., Any], Callable[..., Any]]]:
+    """:func:`rotation_6d_to_matrix_eager` and its rule for each stacking axis (-1: columns, -2: rows),
+    ``(forward(xp, d6) -> (R, parallel), cotangent(xp, d6, R, parallel, gR, gparallel))``: what the
+    torch backend registers as ``rotation_6d_to_matrix``'s eager form."""
+
+    def rules(axis: int) -> tuple[Callable[..., Any], Callable[..., Any]]:
+        def forward(xp: Any, d6: Any) -> tuple[Any, Any]:
+            return rotation_6d_to_matrix_eager(xp, d6, axis)
+
+        def cotangent(xp: Any, d6: Any, r: Any, parallel: Any, g: Any, gparallel: Any) -> Any:
+            return rotation_6d_to_matrix_eager_cotangent(xp, d6, r, parallel, g, gparallel, axis)
+
+        return forward, cotangent
+
+    return {axis: rules(axis) for axis in (-1, -2)}
+
+
+def six_d_axis(*, layout: str = "columns") -> int:
+    """The key of :func:`six_d_eager_rules` for a call's options: the stacking axis of ``layout``."""
+    return _layout_axis("rotation_6d_to_matrix", layout)
+
+
 @nonfinite_by_arithmetic
 @op(matrix=(3, 3))
 def matrix_to_rotation_6d(xp: Any, matrix: Any, *, layout: str = "columns") -> Any:
@@ -145,19 +256,26 @@ def matrix_to_rotation_6d(xp: Any, matrix: Any, *, layout: str = "columns") -> A
     return out + zero_or_nan(xp, cancelling_factor(xp, matrix), 2)[..., None]
 
 
-def _6d_indices() -> tuple[Any, ...]:
-    # the positions of the first two columns and of the first two rows in the row-major entries
-    return [0, 3, 6, 1, 4, 7], [0, 1, 2, 3, 4, 5]
+def _6d_constants() -> tuple[Any, ...]:
+    # the positions of the first two columns in the row-major entries, and a (9, 6) matrix of zeros
+    return [0, 3, 6, 1, 4, 7], [[0.0] * 6 for _ in range(9)]
 
 
 @eager_form(of=matrix_to_rotation_6d)
 def matrix_to_rotation_6d_eager(xp: Any, matrix: Any, *, layout: str = "columns") -> Any:
-    """:func:`matrix_to_rotation_6d`, eager form: one gather of six of the nine flattened entries, and
-    the sum of ``0 * entries`` for the non-finite rows (the very numbers, in five operations)."""
-    columns, rows = constants(xp, matrix, _6d_indices)
-    flat = matrix.flatten(-2)
-    out = flat[..., columns if _layout_axis("matrix_to_rotation_6d", layout) == -1 else rows]
-    return out + (cancelling_factor(xp, flat) * 0.0).sum(-1, keepdim=True)
+    """:func:`matrix_to_rotation_6d`, eager form, in three operations for a batch of one dimension (a
+    view of the flattened entries, the gather of six, one ``addmm``; a view back for any other): the
+    non-finite rows as the product of all nine entries with a (9, 6) matrix of zeros added to the six
+    (``0 * x`` is +-0 for a finite ``x``, NaN for NaN and +-inf, and a sum of zeros is 0: the very
+    numbers), where a sum of ``0 * entries`` and its addition took two more. The product reads the
+    entries as a constant of differentiation (its derivative is 0), so the backward pass is that of
+    the gather alone."""
+    columns, zeros = constants(xp, matrix, _6d_constants)
+    flat = matrix.reshape(-1, 9)
+    picked = flat[:, columns] if _layout_axis("matrix_to_rotation_6d", layout) == -1 else flat[:, :6]
+    out = xp.addmm(picked, cancelling_factor(xp, flat), zeros)
+    # a batch of one dimension is already in its shape (a view to it would be one more operation)
+    return out if matrix.ndim == 3 else out.view(*matrix.shape[:-2], 6)
 
 
 # ---------------------------------------------------------------------------------------------------

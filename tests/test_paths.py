@@ -56,6 +56,24 @@ def test_eager_calls_take_the_function_and_captures_the_formula() -> None:
 
 
 @pytest.mark.filterwarnings("ignore:`torch.jit.script` is deprecated:DeprecationWarning")  # make_dual
+@pytest.mark.parametrize("layout", ["columns", "rows"])
+def test_an_eager_form_with_a_rule_is_for_reverse_mode_only(layout: str) -> None:
+    """A map the Backend calls whose eager form has its own reverse rule (``rotation_6d_to_matrix``,
+    ``_custom.eager_form_with_rule``): its lean Function under autograd; in forward mode the
+    componentwise form, after which the Backend's non-finite rule still makes a NaN row whole (the
+    eager form carries it by its arithmetic, the componentwise one does not)."""
+    d6 = torch.randn(3, 6, dtype=torch.float64)
+    d6[0, 4] = math.nan  # a2's NaN: b1 alone does not read it
+    leaf = d6.clone().requires_grad_(True)
+    out = dq.rotation_6d_to_matrix(leaf, layout=layout)
+    assert "_rotation_6d_to_matrix_leanBackward" in _function_nodes(out)
+    value, tangent = torch.func.jvp(lambda x: dq.rotation_6d_to_matrix(x, layout=layout), (d6,), (d6,))
+    assert torch.isnan(value[0]).all() and torch.isnan(out[0]).all()
+    torch.testing.assert_close(value[1:], out[1:].detach(), rtol=0, atol=1e-15)
+    assert torch.isfinite(tangent[1:]).all()
+
+
+@pytest.mark.filterwarnings("ignore:`torch.jit.script` is deprecated:DeprecationWarning")  # make_dual
 def test_the_form_of_a_call_in_each_context() -> None:
     """The one decision (``_custom.form``), in every context a user calls from: the rule wherever a
     derivative can be asked (autograd, dual tensors, each ``torch.func`` derivative transform, also

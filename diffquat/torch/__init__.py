@@ -29,7 +29,7 @@ from .._types import (
     Side,
     SplineMode,
 )
-from ._custom import choose, custom_derivative, refuse_onnx
+from ._custom import choose, custom_derivative, eager_form_with_rule, refuse_onnx
 
 __all__ = [
     "SE3",
@@ -244,6 +244,13 @@ _special_procrustes = custom_derivative(
 )
 _smallest_eigenvector = custom_derivative(
     _rep.smallest_eigenvector, _rep.eigenvector_tangent, _rep.eigenvector_cotangent
+)
+
+
+# The 6D map's eager form with its own reverse rule (diffquat._representations): autodiff of its
+# selections would read the 0 / 0 of the branches it throws away.
+_core.eager_form(of=_rep.rotation_6d_to_matrix)(
+    eager_form_with_rule(_rep.rotation_6d_to_matrix, _rep.six_d_eager_rules(), _rep.six_d_axis)
 )
 
 

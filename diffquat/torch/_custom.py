@@ -113,10 +113,18 @@ def exact_products(x: Tensor) -> bool:
 
 def choose(core_fn: Callable[..., Any], x: Tensor) -> Callable[..., Any]:
     """The function a call of the core function ``core_fn`` on ``x`` runs: its eager form where it has
-    one (``_core.EAGER_FORMS``) and the call is eager, else ``core_fn`` itself."""
-    if eager(x):
-        return EAGER_FORMS.get(core_fn.__name__, core_fn)
+    one (``_core.EAGER_FORMS``) and the call is eager, else ``core_fn`` itself; and ``core_fn`` in
+    forward mode (an open dual level) where the eager form has a rule of its own
+    (:func:`eager_form_with_rule`), which is for reverse mode only: the componentwise form's autodiff
+    is exact to every order."""
+    name = core_fn.__name__
+    if eager(x) and not (name in _WITH_RULE and forward_ad._current_level >= 0):
+        return EAGER_FORMS.get(name, core_fn)
     return core_fn
+
+
+# The core functions whose eager form has its own reverse rule (eager_form_with_rule).
+_WITH_RULE: set[str] = set()
 
 
 def _linearised(forward: Callable[[Any, Tensor], Tensor], tangent: Formula, x: Tensor) -> Tensor:
@@ -319,6 +327,33 @@ def _lean(
         return Lean.apply(u)  # type: ignore[no-untyped-call]
 
     return apply
+
+
+def eager_form_with_rule(
+    core_fn: Callable[..., Any],
+    rules: dict[Any, tuple[Callable[..., Any], Callable[..., Any]]],
+    key: Callable[..., Any],
+) -> Callable[..., Any]:
+    """The eager form of the core function ``core_fn``, a map that the Backend calls (``choose``), with
+    its own reverse rule: ``rules[key(**options)] = (forward, cotangent)``, ``forward(xp, x) -> (y,
+    aux)`` and ``cotangent(xp, x, y, aux, gy, gaux)`` as for :func:`_lean` (one pair per value of the
+    options that shape the result, as the conversions take one per storage order; ``key`` raises for
+    an invalid one). A call of which a derivative can be asked (:func:`form`'s ``"rule"``) takes the
+    rule's Function, any other eager call the forward alone (the same value, bit for bit); in forward
+    mode (an open dual level: ``jvp``, ``jacfwd``, ``hessian``) :func:`choose` takes ``core_fn``
+    itself, whose autodiff is exact to every order (and the Backend then applies its non-finite rule
+    as after ``core_fn``). Named ``<core_fn>_eager``, the name the Backend reads."""
+    leans = {k: _lean(forward, cotangent, core_fn.__name__) for k, (forward, cotangent) in rules.items()}
+    _WITH_RULE.add(core_fn.__name__)
+
+    def eager_form(xp: Any, x: Tensor, **options: Any) -> Tensor:
+        k = key(**options)
+        if form(x) == "rule":
+            return leans[k](x)[0]
+        return rules[k][0](torch, x)[0]
+
+    eager_form.__name__ = f"{core_fn.__name__}_eager"
+    return eager_form
 
 
 def exporting_to_onnx() -> bool:
