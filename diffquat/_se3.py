@@ -33,6 +33,7 @@ where their closed forms cancel (:data:`Q_SERIES_BELOW`).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from typing import Any
 
 from ._algebra import axis_angle_to_matrix, match_rank, matrix_to_axis_angle
@@ -1321,7 +1322,9 @@ def rotation_between_vectors(
 
 
 @op(x1=(3,), x2=(3,), x3=(3,))
-def frame_from_three_points(xp: Any, x1: Any, x2: Any, x3: Any) -> Any:
+def frame_from_three_points(
+    xp: Any, x1: Any, x2: Any, x3: Any, *, to_rotation: Callable[..., Any] = rotation_6d_to_matrix
+) -> Any:
     """The pose of the frame that three points define (protein models' backbone frames from N, CA, C):
     origin ``x2``, first axis towards ``x3``, second axis in the plane of ``x1`` (on its side).
 
@@ -1343,6 +1346,7 @@ def frame_from_three_points(xp: Any, x1: Any, x2: Any, x3: Any) -> Any:
     along, toward = p3 - p2, p1 - p2
     batch = tuple(xp.broadcast_shapes(along.shape[:-1], toward.shape[:-1]))  # all three's
     d6 = xp.concat([xp.broadcast_to(along, (*batch, 3)), xp.broadcast_to(toward, (*batch, 3))], axis=-1)
-    rotation = rotation_6d_to_matrix(xp, d6)
+    # the backend's 6D map (torch: its eager form and rule in eager mode), else the core's
+    rotation = to_rotation(xp, d6)
     origin = xp.broadcast_to(p2, (*batch, 3))
     return _with_bottom(xp, xp.concat([rotation, _column(origin)], axis=-1))

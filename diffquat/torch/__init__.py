@@ -779,7 +779,13 @@ def rotation_between_vectors(a: Tensor, b: Tensor) -> Tensor:
 
 @documented(_se3.frame_from_three_points)
 def frame_from_three_points(x1: Tensor, x2: Tensor, x3: Tensor) -> Tensor:
-    return _B(_se3.frame_from_three_points, x1, x2, x3)
+    return _B(_se3.frame_from_three_points, x1, x2, x3, to_rotation=_six_d)
+
+
+def _six_d(xp: Any, d6: Tensor) -> Tensor:
+    """The 6D map as the public one computes it (its eager form and rule in eager mode, the core
+    formula under capture and in forward mode: ``choose``), for the composites built on it."""
+    return choose(_rep.rotation_6d_to_matrix, d6)(xp, d6)
 
 
 # Rotations in time: angular velocity and acceleration, integration, SQUAD and B-splines (diffquat._motion).
