@@ -19,6 +19,7 @@ from typing import Any
 from ._algebra import hamilton, nonzero_or_identity, safe_norm
 from ._core import (
     Conversion,
+    cancelling_factor,
     computed_once,
     constants,
     eager_form,
@@ -480,22 +481,19 @@ def matrix_to_euler_angles(xp: Any, matrix: Any, convention: str, *, degrees: bo
     # The middle angle has a kink at the lock, like |x| at 0. n = sqrt(n2 + tiny) keeps the derivative
     # finite at n2 = 0, where it is 0 (dn/dm = m / n, m = 0 there), and all higher ones, with no where
     # (which costs torch 20x a multiplication); it is sqrt(n2) to rounding for n2 > tiny / eps (1e-31
-    # in float32), deep inside the lock. Tait-Bryan: atan2(+-1, sqrt(tiny)) is +-pi/2 exactly, and the
-    # pair is never (0, 0). Proper: sqrt(tiny) (2^-63, 2^-511) is taken off again, so that the middle
-    # angle of the identity is exactly 0, and a zero row (a matrix far off SO(3)) is read as (0, 1).
-    n = xp.sqrt(n2 + tiny)
+    # in float32), deep inside the lock. sqrt(tiny) (2^-63, 2^-511) is taken off again, so that the
+    # middle angle of the identity is exactly 0 (proper), resp. +-pi/2 at an exact lock (Tait-Bryan).
+    n = xp.sqrt(n2 + tiny) - math.sqrt(tiny)
+    # A zero row (a matrix far off SO(3)) is read as (0, 1): atan2(0, 0) has no derivative.
     if proper:
-        n = n - math.sqrt(tiny)
         middle = xp.atan2(n, xp.where(_degenerate(xp, n, axis_entry), 1.0, axis_entry))
     else:
-        # A zero row (a matrix far off SO(3)): atan2(0, sqrt(tiny)) has the derivative 1 / sqrt(tiny)
-        # in the axis entry, which the power-of-two scaling of a tiny matrix would take to infinity.
-        empty = axis_entry * axis_entry + n2 < tiny
-        middle = xp.atan2(axis_entry, xp.where(empty, 1.0, n))
+        middle = xp.atan2(axis_entry, xp.where(_degenerate(xp, axis_entry, n), 1.0, n))
     # scipy's rule on the angle from the lock, atan2(n, |axis_entry|) <= tol, without evaluating it:
-    # n^2 <= tan(tol)^2 axis_entry^2. Exact where that atan2 would round; "+ tiny" also counts as
-    # locked a row whose pair is too small to take an atan2 of (a matrix far off SO(3)).
-    lock = n2 <= math.tan(GIMBAL_LOCK_TOL) ** 2 * (axis_entry * axis_entry) + tiny
+    # n^2 - tan(tol)^2 axis_entry^2 <= tiny. Exact where that atan2 would round; "tiny" also counts as
+    # locked a row whose pair is too small to take an atan2 of (a matrix far off SO(3)). A difference
+    # of two terms compared with a constant: the eager form computes it bit for bit (one rounding).
+    lock = n2 - math.tan(GIMBAL_LOCK_TOL) ** 2 * (axis_entry * axis_entry) <= tiny
     # The angle that is 0 at a lock (scipy's rule: the convention's third), read off directly: w off row
     # i, or extrinsically u off its column. Selected before the atan2: at an exact lock the pair is
     # (0, 0), where atan2 has no derivative; at a lock it is (0, 1), angle 0 with a zero gradient.
@@ -529,3 +527,140 @@ def matrix_to_euler_angles(xp: Any, matrix: Any, convention: str, *, degrees: bo
     # finite matrix is unchanged).
     result = xp.where(finite[..., None], result, math.nan)
     return result * (180.0 / math.pi) if degrees else result
+
+
+_M2E_MAKERS: dict[tuple[str, float], Any] = {}
+
+
+def _m2e_forms(convention: str, tiny: float) -> Any:
+    """The maker (one function object per convention and dtype's ``tiny``, for ``_core.constants``)
+    of the constants of :func:`matrix_to_euler_angles_eager`:
+
+    - ``pick`` (9, K): the signed entries ``E`` of :func:`matrix_to_euler_angles` as columns: the pair
+      of the angle that is 0 at a lock, ``(zy, zx)`` (``w_pair``, or extrinsically ``u_pair``); the
+      carried angle's ``(y1, y0, x1, x0)``; the axis entry; extrinsically ``w_pair`` again;
+    - ``squares`` (K, 2 or 3): the squares of those to ``(n2, tan(tol)^2 axis^2)`` (and ``|u_pair|^2``);
+    - ``spread`` (2 or 3, 3 or 5) and its ``bias``: those to ``(d, d, n2 + tiny)``, ``d = n2 -
+      tan(tol)^2 axis^2`` (extrinsically ``(d, d, u2, u2, n2 + tiny)``);
+    - the zeroed pair at a lock ``(0, 1)``; the wrap's limits ``(pi, inf, pi)``; ``2 pi``; 1;
+      ``sqrt(tiny)``.
+
+    Every column of ``pick``, ``squares`` and ``spread`` has at most two non-zero coefficients, +-1
+    where there are two (or one coefficient and the bias): each entry of the products rounds once, in
+    any order of summation, as the componentwise form's operations do (BLAS sums in an order that
+    depends on the batch's layout)."""
+    key = (convention, tiny)
+    if key in _M2E_MAKERS:
+        return _M2E_MAKERS[key]
+    axes, extrinsic = parse_convention("matrix_to_euler_angles", convention)
+    i, j, k = axes[::-1] if extrinsic else axes
+    proper = i == k
+    if proper:
+        k = 3 - i - j
+    sign = (i - j) * (j - k) * (k - i) // 2
+    # (row, column, sign) of each entry, as in matrix_to_euler_angles
+    if proper:
+        w_pair, axis = [(i, j, 1), (i, k, sign)], (i, i, 1)
+        u_pair = [(j, i, 1), (k, i, -sign)]
+    else:
+        w_pair, axis = [(i, j, -sign), (i, i, 1)], (i, k, sign)
+        u_pair = [(j, k, -sign), (k, k, 1)]
+    if extrinsic and proper:
+        y0, y1, x0, x1 = (j, k, -sign), (k, k, -1), (j, j, 1), (k, j, sign)
+    elif extrinsic:
+        y0, y1, x0, x1 = (j, i, sign), (k, i, 1), (j, j, 1), (k, j, sign)
+    elif proper:
+        y0, y1, x0, x1 = (k, j, sign), (k, k, -1), (j, j, 1), (j, k, -sign)
+    else:
+        y0, y1, x0, x1 = (k, j, sign), (k, i, 1), (j, j, 1), (j, i, sign)
+    columns = [*(u_pair if extrinsic else w_pair), y1, y0, x1, x0, axis, *(w_pair if extrinsic else [])]
+
+    def make() -> tuple[Any, ...]:
+        pick = [[0.0] * len(columns) for _ in range(9)]
+        for col, (r, c, s) in enumerate(columns):
+            pick[3 * r + c][col] = float(s)
+        squares = [[0.0] * (3 if extrinsic else 2) for _ in columns]
+        for a in [7, 8] if extrinsic else [0, 1]:
+            squares[a][0] = 1.0
+        squares[6][1] = math.tan(GIMBAL_LOCK_TOL) ** 2
+        if extrinsic:
+            squares[0][2] = squares[1][2] = 1.0
+        if extrinsic:
+            spread = [[1.0, 1.0, 0.0, 0.0, 1.0], [-1.0, -1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 1.0, 0.0]]
+        else:
+            spread = [[1.0, 1.0, 1.0], [-1.0, -1.0, 0.0]]
+        bias = [0.0] * (len(spread[0]) - 1) + [tiny]
+        limits = [math.pi, math.inf, math.pi]
+        return pick, squares, spread, bias, [0.0, 1.0], limits, 2.0 * math.pi, 1.0, math.sqrt(tiny)
+
+    _M2E_MAKERS[key] = make
+    return make
+
+
+@eager_form(of=matrix_to_euler_angles)
+@nonfinite_by_arithmetic
+def matrix_to_euler_angles_eager(xp: Any, matrix: Any, convention: str, *, degrees: bool = False) -> Any:
+    """:func:`matrix_to_euler_angles`, eager form: the same reading, entries, selections and roundings,
+    each step over a trailing axis, with constant maps for the convention (:func:`_m2e_forms`):
+    32 operations for one batch dimension where the componentwise form takes 87.
+
+    - The matrix is divided by the power of two above its largest entry, a constant of
+      differentiation (``_core.cancelling_factor``): the angles do not depend on it, and their
+      derivative is the scaled matrix's divided by it, exactly. A power of two, like the componentwise
+      form's scale (which is 1 for largest entries in [2^-31, 2^31]), so that every product, sum,
+      comparison and ``atan2`` below scales exactly: the values and the lock and other selections are
+      the componentwise form's (but for quantities within a few ``tiny`` of a threshold, deep inside a
+      lock or far off SO(3)). Where a degenerate pair is read as ``(0, 1)`` (a matrix far off SO(3):
+      a zero row or column), the gradient is the componentwise form's times the ratio of the two
+      scales. Dividing by the largest entry itself would save two operations, but rounds each entry:
+      the angles moved by up to 1 ulp, and the lock's threshold with them.
+    - ``E``, the signed entries read, are one product with a constant matrix, which also carries a
+      NaN or an infinity anywhere in the matrix (``NaN * 0``) to every entry: the non-finite rule is
+      the arithmetic's. Their squares give ``n2`` and ``tan(tol)^2 axis^2``, and those the lock's
+      difference and ``n2 + tiny`` (two more products).
+    - The zeroed angle's pair is selected at the lock, the carried angle's pair is its product with the
+      entries, and the three pairs ``(y, x)`` (first, middle, third angle) take one degenerate rule,
+      one ``atan2`` (on contiguous rows: torch's vectorised kernel) and one wrap.
+
+    The lock and every other selection read the componentwise form's roundings: each column of the
+    constant products has one non-zero coefficient, or two of +-1, so it rounds once in any order of
+    summation (BLAS sums in an order that depends on the batch's layout); the carried pair and the
+    degenerate rule's squares are elementwise products summed over two."""
+    axes, extrinsic = parse_convention("matrix_to_euler_angles", convention)
+    proper = axes[0] == axes[2]
+    tiny = float(xp.finfo(matrix.dtype).tiny)
+    pick, squares, spread, bias, locked, limits, two_pi, one, root_tiny = constants(
+        xp, matrix, _m2e_forms(convention, tiny)
+    )
+    flat = matrix.reshape(-1, 9)
+    big = cancelling_factor(xp, xp.linalg.vector_norm(flat, float("inf"), -1, True))
+    # big / mantissa: the power of two above big, exactly (frexp: big = mantissa 2^exponent, mantissa
+    # in [1/2, 1)), subnormal ones included. 0 / 0 for the zero matrix, whose scale is 1 (its gradient
+    # is not to be multiplied by 1 / tiny), and for a NaN or an infinity, which the product below
+    # carries to every entry anyway; the largest finite numbers' 2^128 (2^1024) overflows to the
+    # largest finite number, a scale that rounds.
+    mantissa, _ = xp.frexp(big)
+    e = xp.mm(flat / xp.nan_to_num(big / mantissa, nan=1.0), pick)
+    sums = xp.addmm(bias, xp.mm(e * e, squares), spread)
+    if extrinsic:
+        lock, u2, n2 = sums.split([2, 2, 1], -1)
+        zero = (lock <= tiny) | (u2 < tiny)
+    else:
+        lock, n2 = sums.split([2, 1], -1)
+        zero = lock <= tiny
+    n = n2.sqrt() - root_tiny
+    raw, entries, axis, *_ = e.split([2, 4, 1, e.shape[-1] - 7], -1)
+    z = xp.where(zero, locked, raw)
+    carried = (entries.view(-1, 2, 2) * z[:, None, :]).sum(-1)
+    middle = xp.cat([n, axis] if proper else [axis, n], -1)
+    pairs = xp.stack([carried, middle, z], -1)
+    degenerate = (pairs * pairs).sum(1) < tiny
+    # contiguous: torch's atan2 takes its vectorised kernel (within 1.4e-7 in float32) only there; on
+    # rows of three with a stride it takes the scalar one (within 2.3e-7)
+    y, x = pairs.unbind(1)
+    y, x = y.contiguous(), x.contiguous()
+    angles = xp.atan2(y, xp.where(degenerate, one, x))
+    angles = xp.addcmul(angles, angles >= limits, two_pi, value=-1.0)
+    if matrix.ndim != 3:
+        angles = angles.view(*matrix.shape[:-2], 3)
+    return angles * (180.0 / math.pi) if degrees else angles

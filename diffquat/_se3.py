@@ -305,15 +305,20 @@ def _product(xp: Any, a: Any, b: Any) -> Any:
 @eager_form(of=se3_compose)
 def se3_compose_eager(xp: Any, matrix1: Any, matrix2: Any) -> Any:
     """:func:`se3_compose`, eager form: ``P1 P2`` with ``P = T``'s top rows over ``(0, 0, 0, 1)``: the
-    second one ``addcmul`` of the mask and the bias; the first masked with ``term`` in every entry (0,
-    or NaN for a pose with a non-finite entry in either input: ``(T1 - T1) T2`` summed), its bias added
-    by the product (``baddbmm``). The bottom row is ``(0, 0, 0, 1) P2 = (0, 0, 0, 1)`` exactly. Six
-    operations for one batch dimension, as a bare ``matmul`` of poses (which gives neither the bottom
-    row nor the non-finite rows); eight for the backward pass, where the bare product's takes seven
-    (``addcmul``'s derivative is two multiplications)."""
+    second one ``T2`` with its bottom row replaced by ``(0, 0, 0, 1)``; the first ``T1`` with its bottom
+    row replaced by ``term`` (0, or NaN for a pose with a non-finite entry in either input: ``(T1 - T1)
+    T2`` summed), which also reaches every entry of a bad pose, its bias added by the product
+    (``baddbmm``). The bottom row is ``term P2 + (0, 0, 0, 1) = (0, 0, 0, 1)`` exactly.
+
+    Each replacement is a ``lerp`` from the bias to ``T`` with the top rows' 0/1 mask as the weight:
+    ``bias + 1 (T - bias)`` is ``T`` exactly there (torch evaluates a weight of 1 as ``T - (T - bias)
+    0``), and ``bias + 0 (T - bias)`` the bias. Its derivative in ``T`` is one product (the mask),
+    where ``addcmul``'s is two (``mask * value``, then the product). Six operations for one batch
+    dimension, as a bare ``matmul`` of poses (which gives neither the bottom row nor the non-finite
+    rows); six for the backward pass, where the bare product's takes seven."""
     top, corner, *_ = constants(xp, matrix1, _pose_masks)
     term = cancelling_factor(xp, ((matrix1 - matrix1) * matrix2).sum((-2, -1), keepdim=True))
-    a, b = xp.addcmul(term, matrix1, top), xp.addcmul(corner, matrix2, top)
+    a, b = xp.lerp(term, matrix1, top), xp.lerp(corner, matrix2, top)
     if a.ndim == b.ndim == 3 and a.shape[0] == b.shape[0]:
         return xp.baddbmm(corner, a, b)
     return xp.matmul(a, b) + corner
