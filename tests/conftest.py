@@ -120,6 +120,9 @@ QUICK_IN_SLOW_FILES = {
     "test_merge_lists_only_the_runs_whose_tables_it_shows",
 }
 SLOW_NAMES = re.compile(r"compil|jit|onnx|trace|captur|inductor|xla")
+# long runs, each a program of its own: the soak test of 10^4 optimiser steps (2 to 8 minutes of one
+# worker, the quick tier's largest item)
+SLOW_RUNS = {"test_torch_parameters_stay_rotations_for_ten_thousand_float32_steps"}
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
@@ -127,7 +130,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:
         name = getattr(item, "originalname", item.name)
         in_slow_file = item.path.name in SLOW_FILES and name not in QUICK_IN_SLOW_FILES
-        if in_slow_file or SLOW_NAMES.search(name) or name == "test_jax_derivatives":
+        if in_slow_file or SLOW_NAMES.search(name) or name == "test_jax_derivatives" or name in SLOW_RUNS:
             item.add_marker(slow)
 
 
