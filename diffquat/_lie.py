@@ -42,6 +42,7 @@ from typing import Any
 from ._algebra import (
     _exp_eager,
     _hamilton_forms,
+    _log_eager,
     _nonzero_or_identity_eager,
     axis_angle_to_matrix,
     axis_angle_to_matrix_eager,
@@ -776,3 +777,19 @@ def so3_minus_eager(
     b_t = xp.swapaxes(b, -1, -2)
     relative = small_matmul(xp, b_t, a) if right else small_matmul(xp, a, b_t)
     return matrix_to_axis_angle_eager(xp, relative, to_quaternion=to_quaternion)
+
+
+@eager_form(of=quaternion_minus)
+def quaternion_minus_eager(
+    xp: Any, q1: Any, q2: Any, *, side: str = "right", scalar_first: bool = True
+) -> Any:
+    """:func:`quaternion_minus`, eager form: the same unit quaternions and relative rotation (their
+    grouping makes ``q* q``'s vector part exactly zero, and a half-turn's sign the componentwise
+    form's), then ``quaternion_to_axis_angle``'s eager form (:func:`_log_eager`)."""
+    right = check_side("quaternion_minus", side)
+    a, b = match_rank(xp, q1, q2)
+    p1 = _unit(xp, a, scalar_first)
+    w, v = _unit(xp, b, scalar_first)
+    inverse = (w, -v)
+    relative = _product(inverse, p1, xp) if right else _product(p1, inverse, xp)
+    return _log_eager(xp, _join(xp, *relative, True))[0]
