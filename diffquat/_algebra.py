@@ -645,3 +645,46 @@ def matrix_geodesic_distance(xp: Any, matrix1: Any, matrix2: Any) -> Any:
     cos2 = trace - 1.0 + 0.0 * cancelling_factor(xp, trace)
     sx, sy, sz = m(2, 1) - m(1, 2), m(0, 2) - m(2, 0), m(1, 0) - m(0, 1)  # 2 sin(angle) axis
     return xp.atan2(safe_norm(xp, sx * sx + sy * sy + sz * sz), cos2)
+
+
+def _skew_and_trace_forms() -> tuple[Any, ...]:
+    """(9, 4): the coefficients of the entries of ``M`` (row-major) in ``axial(M - M^T)`` (``M_21 -
+    M_12``, ``M_02 - M_20``, ``M_10 - M_01``: each two entries with +-1, the others 0) and in
+    ``trace(M)``; and the bias (0, 0, 0, -1) that makes the last column ``trace(M) - 1``."""
+    c = [[0.0] * 4 for _ in range(9)]
+    for i, j, column, sign in (
+        (2, 1, 0, 1.0), (1, 2, 0, -1.0),
+        (0, 2, 1, 1.0), (2, 0, 1, -1.0),
+        (1, 0, 2, 1.0), (0, 1, 2, -1.0),
+        (0, 0, 3, 1.0), (1, 1, 3, 1.0), (2, 2, 3, 1.0),
+    ):  # fmt: skip
+        c[3 * i + j][column] = sign
+    return c, [0.0, 0.0, 0.0, -1.0]
+
+
+@eager_form(of=matrix_geodesic_distance)
+def matrix_geodesic_distance_eager(xp: Any, matrix1: Any, matrix2: Any) -> Any:
+    """:func:`matrix_geodesic_distance`, eager form, in ten operations: ``M = a^T b`` as the sum over
+    ``k`` of the outer products of the rows ``a_k``, ``b_k`` (elementwise products, then one sum over
+    ``k``), then ``(axial(M - M^T), trace(M) - 1)`` as one ``addmm`` with constant coefficients, and
+    ``atan2(|axial|, trace - 1)``, the componentwise form's formula.
+
+    Why not ``a.mT @ b``: a rotation's distance to itself is exactly 0 only if ``M = a^T a`` comes out
+    exactly symmetric, and a BLAS product sums its three terms in an order (and with fused
+    multiply-adds) that may differ between entries; ``linalg.cross`` of the rows fuses ``a1 b2 - a2
+    b1`` into one multiply-add on CPUs and GPUs that have one, which is not 0 for ``a = b``. Here every
+    product is rounded on its own and ``M_ij``, ``M_ji`` are the same three products summed in the same
+    order, so ``M`` is exactly symmetric; the product with the coefficients then takes each skew
+    component as the difference of two entries (coefficients +-1, the others 0: one rounding, exact
+    sign, exactly 0 for a symmetric ``M``), whatever order BLAS sums in. The trace is a sum of three
+    entries and rides on no choice: BLAS's order changes it by rounding only.
+
+    Non-finite rows: a NaN or an infinity in either matrix makes a row of ``M`` NaN or infinite, and
+    the product with the coefficients multiplies every entry of ``M`` by each column's coefficient, 0
+    included (``0 * inf`` and ``0 * NaN`` are NaN in a matrix product), so the whole result is NaN
+    (NONFINITE_BY_ARITHMETIC). ``linalg.vector_norm``'s derivative is 0 at the zero vector (at equal
+    rotations and exact half-turns), as :func:`safe_norm`'s."""
+    c, bias = constants(xp, matrix1, _skew_and_trace_forms)
+    m = (matrix1[..., :, :, None] * matrix2[..., :, None, :]).sum(-3)
+    skew, cos2 = xp.addmm(bias, m.reshape(-1, 9), c).split([3, 1], -1)
+    return xp.atan2(xp.linalg.vector_norm(skew, 2, -1, True), cos2).view(m.shape[:-2])
