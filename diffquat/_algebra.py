@@ -180,27 +180,28 @@ def quaternion_invert(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
 
 
 def _invert_constants() -> tuple[Any, ...]:
-    # the conjugate's signs (scalar first), 1 and 0
-    return [1.0, -1.0, -1.0, -1.0], 1.0, 0.0
+    # the conjugate's signs, 0 and inf
+    return [1.0, -1.0, -1.0, -1.0], 0.0, float("inf")
 
 
+@nonfinite_by_arithmetic
 @eager_form(of=quaternion_invert)
 def quaternion_invert_eager(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
-    """:func:`quaternion_invert`, eager form: the same scaling, ``conj(q) / |q|^2 = conj(u) / (m |u|^2)``
-    with ``u = q / m``, ``m = max |q_i|``, as few vectorised operations. ``m`` is a constant of
-    differentiation: for every fixed ``m`` the map ``q -> conj(q / m) / (m |q / m|^2)`` is
-    ``conj(q) / |q|^2`` itself, so its derivative is exact, and the largest intermediate derivative is
-    of size ``1 / m^2``. The zero quaternion (``m^2 |u|^2`` below the smallest normal number) gives 0; a
-    NaN or an infinity makes ``u`` and then every component NaN (the test is "below", false for NaN)."""
-    if not scalar_first:
+    """:func:`quaternion_invert`, eager form, in seven operations: ``conj(q) / |q|^2 = conj(q) / |q| / |q|``,
+    the norm from ``linalg.vector_norm``. Two divisions by ``|q|``, not one by ``|q|^2``: reverse mode
+    through ``1 / |q|^2`` meets ``|q|^-3`` (1e45 at |q| = 1e-15, past float32); this way every
+    intermediate derivative is of size ``1 / |q|^2`` at most. The divisor is ``|q| + 0 |q|`` (the second
+    term a constant of differentiation), NaN where ``|q|`` is inf or NaN, so such a row is NaN in every
+    component (NONFINITE_BY_ARITHMETIC; ``conj(q) / |q|`` alone leaves 0 beside an infinity). The zero
+    quaternion (``|q| < sqrt(tiny)``: squared norm below the smallest normal number) is divided by inf
+    instead: the zero quaternion, with a zero gradient."""
+    if not scalar_first:  # one order of summation in the norm, so both orders agree bit for bit
         q = xp.roll(q, 1, -1)
-    signs, one, zero = constants(xp, q, _invert_constants)
-    tiny = float(xp.finfo(q.dtype).tiny)
-    m = cancelling_factor(xp, xp.linalg.vector_norm(q, float("inf"), -1, True).clamp_min(tiny))
-    u = q / m
-    den = (u * u).sum(-1, keepdim=True) * m
-    small = den * m < tiny
-    out = xp.where(small, zero, (u * signs) / xp.where(small, one, den))
+    signs, zero, inf = constants(xp, q, _invert_constants)
+    norm = xp.linalg.vector_norm(q, 2, -1, True)
+    small = norm < float(xp.finfo(q.dtype).tiny) ** 0.5
+    divisor = xp.where(small, inf, xp.addcmul(norm, cancelling_factor(xp, norm), zero))
+    out = q * signs / divisor / divisor
     return out if scalar_first else xp.roll(out, -1, -1)
 
 
