@@ -654,19 +654,20 @@ def _normalize_constants() -> tuple[Any, ...]:
 def normalize_quaternion_eager(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
     """:func:`normalize_quaternion`, eager form, in six operations: ``q / |q|`` with the norm from
     ``linalg.vector_norm``; the zero quaternion (``|q| < sqrt(tiny)``, i.e. squared norm below the
-    smallest normal number: the square root of a power of 4 is exact) divided by inf instead (to 0, with
-    a zero gradient) and the identity added, two selections on one mask, where every other row adds 0.
-    The non-finite rows by arithmetic (NONFINITE_BY_ARITHMETIC, registered under this form's name): the
-    divisor is ``|q| + 0 |q|``, NaN where ``|q|`` is inf or NaN, so every component of such a row is NaN
-    (``q / |q|`` alone leaves 0 in the finite components beside an infinity). Composites call the
-    componentwise form, and the backend's rule after it (see :func:`normalize_quaternion`)."""
+    smallest normal number: the square root of a power of 4 is exact) the identity, and divided by inf
+    in the branch thrown away (to 0: finite, with a zero gradient). The non-finite rows by arithmetic
+    (NONFINITE_BY_ARITHMETIC, registered under this form's name): the divisor is ``|q| + 0 |q|`` (the
+    second term a constant of differentiation), NaN where ``|q|`` is inf or NaN, so every component of
+    such a row is NaN (``q / |q|`` alone leaves 0 in the finite components beside an infinity).
+    Composites call the componentwise form, and the backend's rule after it (see
+    :func:`normalize_quaternion`)."""
     if not scalar_first:  # one order of summation in the norm, so both orders agree bit for bit
         q = xp.roll(q, 1, -1)
     identity, zero, inf = constants(xp, q, _normalize_constants)
     norm = xp.linalg.vector_norm(q, 2, -1, True)
     small = norm < float(xp.finfo(q.dtype).tiny) ** 0.5
     divisor = xp.where(small, inf, xp.addcmul(norm, cancelling_factor(xp, norm), zero))
-    out = xp.addcdiv(xp.where(small, identity, zero), q, divisor)
+    out = xp.where(small, identity, q / divisor)
     return out if scalar_first else xp.roll(out, -1, -1)
 
 
