@@ -180,28 +180,34 @@ def quaternion_invert(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
 
 
 def _invert_constants() -> tuple[Any, ...]:
-    # the conjugate's signs, 0 and inf
-    return [1.0, -1.0, -1.0, -1.0], 0.0, float("inf")
+    # the conjugate's signs and inf
+    return [1.0, -1.0, -1.0, -1.0], float("inf")
 
 
 @nonfinite_by_arithmetic
 @eager_form(of=quaternion_invert)
 def quaternion_invert_eager(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
-    """:func:`quaternion_invert`, eager form, in seven operations: ``conj(q) / |q|^2 = conj(q) / |q| / |q|``,
-    the norm from ``linalg.vector_norm``. Two divisions by ``|q|``, not one by ``|q|^2``: reverse mode
-    through ``1 / |q|^2`` meets ``|q|^-3`` (1e45 at |q| = 1e-15, past float32); this way every
-    intermediate derivative is of size ``1 / |q|^2`` at most. The divisor is ``|q| + 0 |q|`` (the second
-    term a constant of differentiation), NaN where ``|q|`` is inf or NaN, so such a row is NaN in every
-    component (NONFINITE_BY_ARITHMETIC; ``conj(q) / |q|`` alone leaves 0 beside an infinity). The zero
+    """:func:`quaternion_invert`, eager form, in ten operations: ``conj(q) / |q|^2 = conj(u) / (|u| |q|)``
+    with ``u = q / m``, ``m = max |q_i|`` a constant of differentiation (the same function of ``q`` for
+    every fixed ``m``, so the derivative is exact), and ``|q| = m |u|``.
+
+    ``|u|`` lies in [1, 2], so the norm neither overflows nor underflows for any finite quaternion
+    (``linalg.vector_norm`` of ``q`` itself is inf from ``|q| ~ 1.8e19`` on in float32), and the divisor
+    is of size ``|q|``, not ``|q|^2``: reverse mode through ``1 / |q|^2`` meets ``|q|^-3`` (1e45 at
+    |q| = 1e-15, past float32); this way every intermediate derivative is of size ``1 / |q|^2`` at
+    most. A NaN or an infinity makes ``q / m`` NaN
+    (``inf / inf``), then ``|q|`` and every component of the row (NONFINITE_BY_ARITHMETIC). The zero
     quaternion (``|q| < sqrt(tiny)``: squared norm below the smallest normal number) is divided by inf
     instead: the zero quaternion, with a zero gradient."""
     if not scalar_first:  # one order of summation in the norm, so both orders agree bit for bit
         q = xp.roll(q, 1, -1)
-    signs, zero, inf = constants(xp, q, _invert_constants)
-    norm = xp.linalg.vector_norm(q, 2, -1, True)
-    small = norm < float(xp.finfo(q.dtype).tiny) ** 0.5
-    divisor = xp.where(small, inf, xp.addcmul(norm, cancelling_factor(xp, norm), zero))
-    out = q * signs / divisor / divisor
+    signs, inf = constants(xp, q, _invert_constants)
+    tiny = float(xp.finfo(q.dtype).tiny)
+    m = cancelling_factor(xp, xp.linalg.vector_norm(q, float("inf"), -1, True).clamp_min(tiny))
+    u = q / m
+    n = xp.linalg.vector_norm(u, 2, -1, True)
+    norm = n * m
+    out = u * signs / xp.where(norm < tiny**0.5, inf, n * norm)
     return out if scalar_first else xp.roll(out, -1, -1)
 
 
