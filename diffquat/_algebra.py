@@ -648,7 +648,7 @@ def _nest(values: list[Any]) -> list[Any]:
 
 @eager_form(of=quaternion_geodesic_distance)
 def quaternion_geodesic_distance_eager(xp: Any, p: Any, q: Any, *, scalar_first: bool = True) -> Any:
-    """:func:`quaternion_geodesic_distance`, eager form, in twelve operations: both quaternions halved to
+    """:func:`quaternion_geodesic_distance`, eager form, in thirteen operations: both quaternions halved to
     norm 1/2 (``u``, ``v``; one stack, one norm, one ``addcdiv``), then ``4 asin(min(|u - v|, |u + v|))``.
 
     For unit ``p``, ``q`` at an angle ``phi`` in R^4, ``|p -+ q| / 2 = sin(phi / 2)``, ``cos(phi / 2)``, and
@@ -665,8 +665,10 @@ def quaternion_geodesic_distance_eager(xp: Any, p: Any, q: Any, *, scalar_first:
     two selections on one mask; every other one is divided by its norm and 0 added. Its gradient is 0,
     and finite for every input. A NaN or an infinity makes the norm NaN or inf and ``x / norm`` NaN
     (``inf / inf``), so every later value of the row is NaN (``min`` propagates NaN):
-    NONFINITE_BY_ARITHMETIC. ``linalg.vector_norm``'s derivative is 0 at the zero vector (``q = +-p``),
-    as :func:`safe_norm`'s."""
+    NONFINITE_BY_ARITHMETIC. So does a norm that overflows (``|q| > ~1.8e19`` in float32, ``1.3e154``
+    in float64: the divisor is ``|x| + 0 |x|``), where ``x / |x|`` would be 0 and the distance silently
+    wrong; the componentwise form's squares overflow there too. ``linalg.vector_norm``'s derivative is
+    0 at the zero vector (``q = +-p``), as :func:`safe_norm`'s."""
     if p.shape != q.shape:  # static shapes: stack wants one shape
         p, q = xp.broadcast_tensors(p, q)
     x = xp.stack([p, q])
@@ -676,7 +678,9 @@ def quaternion_geodesic_distance_eager(xp: Any, p: Any, q: Any, *, scalar_first:
     norm = xp.linalg.vector_norm(x, 2, -1, True)
     small = norm < float(xp.finfo(x.dtype).tiny) ** 0.5
     half = xp.where(small, identity, zero)
-    u, v = xp.addcdiv(half, x, xp.where(small, inf, norm), value=0.5).split(1, 0)
+    # |x| + 0 |x|: NaN where the norm overflowed (|x| > ~1.8e19 in float32), where x / |x| would be 0
+    divisor = xp.where(small, inf, xp.addcmul(norm, cancelling_factor(xp, norm), zero))
+    u, v = xp.addcdiv(half, x, divisor, value=0.5).split(1, 0)
     lo, _ = xp.linalg.vector_norm(xp.addcmul(u, v, signs), 2, -1).min(0)
     return xp.asin(lo) * 4.0
 

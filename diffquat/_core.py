@@ -658,7 +658,8 @@ def normalize_quaternion_eager(xp: Any, q: Any, *, scalar_first: bool = True) ->
     in the branch thrown away (to 0: finite, with a zero gradient). The non-finite rows by arithmetic
     (NONFINITE_BY_ARITHMETIC, registered under this form's name): the divisor is ``|q| + 0 |q|`` (the
     second term a constant of differentiation), NaN where ``|q|`` is inf or NaN, so every component of
-    such a row is NaN (``q / |q|`` alone leaves 0 in the finite components beside an infinity).
+    such a row is NaN (``q / |q|`` alone leaves 0 in the finite components beside an infinity); so is
+    a row whose norm overflows (``|q| > ~1.8e19`` in float32), which the componentwise form returns as 0.
     Composites call the componentwise form, and the backend's rule after it (see
     :func:`normalize_quaternion`)."""
     if not scalar_first:  # one order of summation in the norm, so both orders agree bit for bit
