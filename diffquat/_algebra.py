@@ -7,6 +7,8 @@ the identity also make slerp's gradient correct where ``p = +-q``.
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from typing import Any
 
 from ._core import (
@@ -178,27 +180,34 @@ def quaternion_invert(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
 
 
 def _invert_constants() -> tuple[Any, ...]:
-    # the conjugate's signs (scalar first), 1 and 0
-    return [1.0, -1.0, -1.0, -1.0], 1.0, 0.0
+    # the conjugate's signs and inf
+    return [1.0, -1.0, -1.0, -1.0], float("inf")
 
 
+@nonfinite_by_arithmetic
 @eager_form(of=quaternion_invert)
 def quaternion_invert_eager(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
-    """:func:`quaternion_invert`, eager form: the same scaling, ``conj(q) / |q|^2 = conj(u) / (m |u|^2)``
-    with ``u = q / m``, ``m = max |q_i|``, as few vectorised operations. ``m`` is a constant of
-    differentiation: for every fixed ``m`` the map ``q -> conj(q / m) / (m |q / m|^2)`` is
-    ``conj(q) / |q|^2`` itself, so its derivative is exact, and the largest intermediate derivative is
-    of size ``1 / m^2``. The zero quaternion (``m^2 |u|^2`` below the smallest normal number) gives 0; a
-    NaN or an infinity makes ``u`` and then every component NaN (the test is "below", false for NaN)."""
-    if not scalar_first:
+    """:func:`quaternion_invert`, eager form, in ten operations: ``conj(q) / |q|^2 = conj(u) / (|u| |q|)``
+    with ``u = q / m``, ``m = max |q_i|`` a constant of differentiation (the same function of ``q`` for
+    every fixed ``m``, so the derivative is exact), and ``|q| = m |u|``.
+
+    ``|u|`` lies in [1, 2], so the norm neither overflows nor underflows for any finite quaternion
+    (``linalg.vector_norm`` of ``q`` itself is inf from ``|q| ~ 1.8e19`` on in float32), and the divisor
+    is of size ``|q|``, not ``|q|^2``: reverse mode through ``1 / |q|^2`` meets ``|q|^-3`` (1e45 at
+    |q| = 1e-15, past float32); this way every intermediate derivative is of size ``1 / |q|^2`` at
+    most. A NaN or an infinity makes ``q / m`` NaN
+    (``inf / inf``), then ``|q|`` and every component of the row (NONFINITE_BY_ARITHMETIC). The zero
+    quaternion (``|q| < sqrt(tiny)``: squared norm below the smallest normal number) is divided by inf
+    instead: the zero quaternion, with a zero gradient."""
+    if not scalar_first:  # one order of summation in the norm, so both orders agree bit for bit
         q = xp.roll(q, 1, -1)
-    signs, one, zero = constants(xp, q, _invert_constants)
+    signs, inf = constants(xp, q, _invert_constants)
     tiny = float(xp.finfo(q.dtype).tiny)
     m = cancelling_factor(xp, xp.linalg.vector_norm(q, float("inf"), -1, True).clamp_min(tiny))
     u = q / m
-    den = (u * u).sum(-1, keepdim=True) * m
-    small = den * m < tiny
-    out = xp.where(small, zero, (u * signs) / xp.where(small, one, den))
+    n = xp.linalg.vector_norm(u, 2, -1, True)
+    norm = n * m
+    out = u * signs / xp.where(norm < tiny**0.5, inf, n * norm)
     return out if scalar_first else xp.roll(out, -1, -1)
 
 
@@ -628,6 +637,65 @@ def _nonzero_or_identity_eager(xp: Any, q: Any, identity: Any) -> tuple[Any, Any
     return xp.where(zero, identity, q), norm, zero
 
 
+@functools.cache
+def _half_unit_constants(rank: int) -> Callable[[], tuple[Any, ...]]:
+    """The constants of :func:`quaternion_geodesic_distance_eager` for a stack of rank ``rank``: half the
+    identity quaternion (scalar first), 0, inf, and the signs (-1, +1) of ``p - q`` and
+    ``p + q`` along the stack's first axis, shaped ``(2, 1, ..., 1)`` to broadcast against its rank."""
+
+    def make() -> tuple[Any, ...]:
+        signs: list[Any] = [-1.0, 1.0]
+        for _ in range(rank - 1):
+            signs = _nest(signs)
+        return [0.5, 0.0, 0.0, 0.0], 0.0, float("inf"), signs
+
+    return make
+
+
+def _nest(values: list[Any]) -> list[Any]:
+    """Each entry of ``values`` wrapped in one more list: ``[a, b]`` -> ``[[a], [b]]``."""
+    return [_nest(v) if isinstance(v, list) else [v] for v in values]
+
+
+@eager_form(of=quaternion_geodesic_distance)
+def quaternion_geodesic_distance_eager(xp: Any, p: Any, q: Any, *, scalar_first: bool = True) -> Any:
+    """:func:`quaternion_geodesic_distance`, eager form, in thirteen operations: both quaternions halved to
+    norm 1/2 (``u``, ``v``; one stack, one norm, one ``addcdiv``), then ``4 asin(min(|u - v|, |u + v|))``.
+
+    For unit ``p``, ``q`` at an angle ``phi`` in R^4, ``|p -+ q| / 2 = sin(phi / 2)``, ``cos(phi / 2)``, and
+    the rotation between them turns by ``2 min(phi, pi - phi)``: four times the arcsine of the smaller
+    half-norm, which is at most ``sin(pi / 4)`` (the arcsine's slope at most sqrt 2). The value agrees
+    with the componentwise ``2 atan2(|r_xyz|, |r_w|)`` to rounding (the differences carry the same
+    cancellation as its 2 x 2 minors near ``q = +-p``). Scalar-last storage is reordered first (``roll``),
+    so that the norms sum in one order and the two storage orders agree bit for bit.
+
+    Exactly 0 for ``q = +-p``: ``v = +-u`` bit for bit (the same norm and halving; negation is exact), and
+    ``u -+ v`` is one rounding of two terms with coefficients +-1, exactly 0. The zero rule is the
+    componentwise form's (``|q| < sqrt(tiny)``: squared norm below the smallest normal number, the square
+    root of a power of 4 exact): such a quaternion is divided by inf (to 0) and half the identity added,
+    two selections on one mask; every other one is divided by its norm and 0 added. Its gradient is 0,
+    and finite for every input. A NaN or an infinity makes the norm NaN or inf and ``x / norm`` NaN
+    (``inf / inf``), so every later value of the row is NaN (``min`` propagates NaN):
+    NONFINITE_BY_ARITHMETIC. So does a norm that overflows (``|q| > ~1.8e19`` in float32, ``1.3e154``
+    in float64: the divisor is ``|x| + 0 |x|``), where ``x / |x|`` would be 0 and the distance silently
+    wrong; the componentwise form's squares overflow there too. ``linalg.vector_norm``'s derivative is
+    0 at the zero vector (``q = +-p``), as :func:`safe_norm`'s."""
+    if p.shape != q.shape:  # static shapes: stack wants one shape
+        p, q = xp.broadcast_tensors(p, q)
+    x = xp.stack([p, q])
+    if not scalar_first:  # one order of summation in the norms, so both orders agree bit for bit
+        x = xp.roll(x, 1, -1)
+    identity, zero, inf, signs = constants(xp, x, _half_unit_constants(x.ndim))
+    norm = xp.linalg.vector_norm(x, 2, -1, True)
+    small = norm < float(xp.finfo(x.dtype).tiny) ** 0.5
+    half = xp.where(small, identity, zero)
+    # |x| + 0 |x|: NaN where the norm overflowed (|x| > ~1.8e19 in float32), where x / |x| would be 0
+    divisor = xp.where(small, inf, xp.addcmul(norm, cancelling_factor(xp, norm), zero))
+    u, v = xp.addcdiv(half, x, divisor, value=0.5).split(1, 0)
+    lo, _ = xp.linalg.vector_norm(xp.addcmul(u, v, signs), 2, -1).min(0)
+    return xp.asin(lo) * 4.0
+
+
 @nonfinite_by_arithmetic
 @op(matrix1=(3, 3), matrix2=(3, 3))
 def matrix_geodesic_distance(xp: Any, matrix1: Any, matrix2: Any) -> Any:
@@ -656,3 +724,46 @@ def matrix_geodesic_distance(xp: Any, matrix1: Any, matrix2: Any) -> Any:
     cos2 = trace - 1.0 + 0.0 * cancelling_factor(xp, trace)
     sx, sy, sz = m(2, 1) - m(1, 2), m(0, 2) - m(2, 0), m(1, 0) - m(0, 1)  # 2 sin(angle) axis
     return xp.atan2(safe_norm(xp, sx * sx + sy * sy + sz * sz), cos2)
+
+
+def _skew_and_trace_forms() -> tuple[Any, ...]:
+    """(9, 4): the coefficients of the entries of ``M`` (row-major) in ``axial(M - M^T)`` (``M_21 -
+    M_12``, ``M_02 - M_20``, ``M_10 - M_01``: each two entries with +-1, the others 0) and in
+    ``trace(M)``; and the bias (0, 0, 0, -1) that makes the last column ``trace(M) - 1``."""
+    c = [[0.0] * 4 for _ in range(9)]
+    for i, j, column, sign in (
+        (2, 1, 0, 1.0), (1, 2, 0, -1.0),
+        (0, 2, 1, 1.0), (2, 0, 1, -1.0),
+        (1, 0, 2, 1.0), (0, 1, 2, -1.0),
+        (0, 0, 3, 1.0), (1, 1, 3, 1.0), (2, 2, 3, 1.0),
+    ):  # fmt: skip
+        c[3 * i + j][column] = sign
+    return c, [0.0, 0.0, 0.0, -1.0]
+
+
+@eager_form(of=matrix_geodesic_distance)
+def matrix_geodesic_distance_eager(xp: Any, matrix1: Any, matrix2: Any) -> Any:
+    """:func:`matrix_geodesic_distance`, eager form, in ten operations: ``M = a^T b`` as the sum over
+    ``k`` of the outer products of the rows ``a_k``, ``b_k`` (elementwise products, then one sum over
+    ``k``), then ``(axial(M - M^T), trace(M) - 1)`` as one ``addmm`` with constant coefficients, and
+    ``atan2(|axial|, trace - 1)``, the componentwise form's formula.
+
+    Why not ``a.mT @ b``: a rotation's distance to itself is exactly 0 only if ``M = a^T a`` comes out
+    exactly symmetric, and a BLAS product sums its three terms in an order (and with fused
+    multiply-adds) that may differ between entries; ``linalg.cross`` of the rows fuses ``a1 b2 - a2
+    b1`` into one multiply-add on CPUs and GPUs that have one, which is not 0 for ``a = b``. Here every
+    product is rounded on its own and ``M_ij``, ``M_ji`` are the same three products summed in the same
+    order, so ``M`` is exactly symmetric; the product with the coefficients then takes each skew
+    component as the difference of two entries (coefficients +-1, the others 0: one rounding, exact
+    sign, exactly 0 for a symmetric ``M``), whatever order BLAS sums in. The trace is a sum of three
+    entries and rides on no choice: BLAS's order changes it by rounding only.
+
+    Non-finite rows: a NaN or an infinity in either matrix makes a row of ``M`` NaN or infinite, and
+    the product with the coefficients multiplies every entry of ``M`` by each column's coefficient, 0
+    included (``0 * inf`` and ``0 * NaN`` are NaN in a matrix product), so the whole result is NaN
+    (NONFINITE_BY_ARITHMETIC). ``linalg.vector_norm``'s derivative is 0 at the zero vector (at equal
+    rotations and exact half-turns), as :func:`safe_norm`'s."""
+    c, bias = constants(xp, matrix1, _skew_and_trace_forms)
+    m = (matrix1[..., :, :, None] * matrix2[..., :, None, :]).sum(-3)
+    skew, cos2 = xp.addmm(bias, m.reshape(-1, 9), c).split([3, 1], -1)
+    return xp.atan2(xp.linalg.vector_norm(skew, 2, -1, True), cos2).view(m.shape[:-2])

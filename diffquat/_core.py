@@ -627,35 +627,48 @@ def xyzw_to_wxyz_eager(xp: Any, q: Any) -> Any:
 
 def _sign_weights() -> tuple[Any, ...]:
     # the first non-zero component decides the canonical sign: weights 8, 4, 2, 1 from w to z (each
-    # exceeds the sum of those after it), in either storage order; and 1
-    return [[8.0], [4.0], [2.0], [1.0]], [[4.0], [2.0], [1.0], [8.0]], 1.0
+    # exceeds the sum of those after it), in either storage order; 1; and the zero column of the
+    # non-finite rows
+    return [[8.0], [4.0], [2.0], [1.0]], [[4.0], [2.0], [1.0], [8.0]], 1.0, [[0.0], [0.0], [0.0], [0.0]]
 
 
 def standardize_quaternion_eager(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
-    """:func:`standardize_quaternion`, eager form: ``q`` times the sign of ``sgn(q) . (8, 4, 2, 1)``
-    (``copysign(1, .)``: +1 for the zero quaternion, whose sum is +0, as the componentwise form keeps
-    it), a constant of differentiation, so the gradient is +-1 times the identity as there."""
-    first, last, one = constants(xp, q, _sign_weights)
-    signs = xp.sgn(cancelling_factor(xp, q)) @ (first if scalar_first else last)
-    return q * xp.copysign(one, signs)
+    """:func:`standardize_quaternion`, eager form, in five operations: ``q`` times the sign of ``sgn(q) .
+    (8, 4, 2, 1)`` (``copysign(1, .)``: +1 for the zero quaternion, whose sum is +0, as the componentwise
+    form keeps it), a constant of differentiation, so the gradient is +-1 times the identity as there.
+    The sums are of small integers, exact in any order. The non-finite rows by arithmetic
+    (NONFINITE_BY_ARITHMETIC, registered under this form's name): ``q . 0`` is 0 for a finite row and
+    NaN for one with a NaN or an infinity (``0 * inf``, ``0 * NaN`` in the matrix product), added to the
+    result by the same ``addcmul`` that multiplies by the sign (a zero component comes out +0 where the
+    componentwise form may give -0: equal values)."""
+    first, last, one, zeros = constants(xp, q, _sign_weights)
+    fixed = cancelling_factor(xp, q)
+    signs = xp.sgn(fixed) @ (first if scalar_first else last)
+    return xp.addcmul(fixed @ zeros, q, xp.copysign(one, signs))
 
 
 def _normalize_constants() -> tuple[Any, ...]:
-    return [1.0, 0.0, 0.0, 0.0], 1.0
+    return [1.0, 0.0, 0.0, 0.0], 0.0, float("inf")
 
 
 def normalize_quaternion_eager(xp: Any, q: Any, *, scalar_first: bool = True) -> Any:
-    """:func:`normalize_quaternion`, eager form, in five operations: ``q / |q|`` with the norm from
-    ``linalg.vector_norm`` and the zero quaternion (``|q| < sqrt(tiny)``, i.e. squared norm below the
-    smallest normal number: the square root of a power of 4 is exact) the identity. The backend's
-    rule makes the non-finite rows NaN, as after the componentwise form, which composites (the
-    splines, the quaternion mean) call without it."""
-    if not scalar_first:
+    """:func:`normalize_quaternion`, eager form, in six operations: ``q / |q|`` with the norm from
+    ``linalg.vector_norm``; the zero quaternion (``|q| < sqrt(tiny)``, i.e. squared norm below the
+    smallest normal number: the square root of a power of 4 is exact) the identity, and divided by inf
+    in the branch thrown away (to 0: finite, with a zero gradient). The non-finite rows by arithmetic
+    (NONFINITE_BY_ARITHMETIC, registered under this form's name): the divisor is ``|q| + 0 |q|`` (the
+    second term a constant of differentiation), NaN where ``|q|`` is inf or NaN, so every component of
+    such a row is NaN (``q / |q|`` alone leaves 0 in the finite components beside an infinity); so is
+    a row whose norm overflows (``|q| > ~1.8e19`` in float32), which the componentwise form returns as 0.
+    Composites call the componentwise form, and the backend's rule after it (see
+    :func:`normalize_quaternion`)."""
+    if not scalar_first:  # one order of summation in the norm, so both orders agree bit for bit
         q = xp.roll(q, 1, -1)
-    identity, one = constants(xp, q, _normalize_constants)
+    identity, zero, inf = constants(xp, q, _normalize_constants)
     norm = xp.linalg.vector_norm(q, 2, -1, True)
     small = norm < float(xp.finfo(q.dtype).tiny) ** 0.5
-    out = xp.where(small, identity, q / xp.where(small, one, norm))
+    divisor = xp.where(small, inf, xp.addcmul(norm, cancelling_factor(xp, norm), zero))
+    out = xp.where(small, identity, q / divisor)
     return out if scalar_first else xp.roll(out, -1, -1)
 
 
@@ -771,6 +784,10 @@ for _of, _form in (
     (normalize_quaternion, normalize_quaternion_eager),
 ):
     eager_form(of=_of)(_form)
+# the two whose arithmetic makes non-finite rows NaN (by the eager form's name: the backend checks the
+# function it ran; their componentwise forms keep the backend's rule)
+nonfinite_by_arithmetic(standardize_quaternion_eager)
+nonfinite_by_arithmetic(normalize_quaternion_eager)
 
 
 _CONSTANTS: dict[tuple[Any, ...], Any] = {}
