@@ -23,6 +23,14 @@ kornia, pypose and theseus' Lie library torchlie (``theseus-ai`` itself builds C
 the installed torch at install time; its SO(3) is torchlie's). The two-argument ``so3_plus`` and
 ``quaternion_plus`` take one packed input per call, ``(N, 12)`` (the matrix row-major, then the
 rotation vector) or ``(N, 7)`` (the quaternion, then the rotation vector), split by every method alike.
+
+The further conversions (``rotation_6d_to_matrix``, whose input is the two columns, and the Euler
+angles in one convention, ``EULER``) and the quaternion operations (``quaternion_multiply``,
+``quaternion_apply``, ``quaternion_slerp``, ``quaternion_geodesic_distance``,
+``matrix_geodesic_distance``) are timed the same way; the two-argument ones take one packed input too
+(``PACKED``), whose second rotation is the first times the case's, so that the accuracy table's edge
+cases (0, 1e-10, near and at pi) are the relative rotation. Where a peer lacks the operation, or
+computes it wrongly for this benchmark, ``GAPS`` says why.
 """
 
 from __future__ import annotations
@@ -59,7 +67,23 @@ WIDTH = {
     "jacobian": 9,
     "matrix+rotvec": 12,
     "quaternion+rotvec": 7,
+    "rotation_6d": 6,
+    "euler": 3,
+    "vector": 3,
+    "angle": 1,
+    "quaternion+quaternion": 8,
+    "quaternion+vector": 7,
+    "quaternion+quaternion+t": 9,
+    "matrix+matrix": 18,
 }
+# The Euler angles' convention of the Euler rows (scipy's rule: lower case extrinsic): roll, pitch, yaw
+# about the fixed x, y, z axes. Every peer has it: jaxlie's rpy, roma's "xyz", pytorch-kinematics'
+# intrinsic "ZYX" with the angles reversed (it has intrinsic sequences only), scipy's "xyz".
+EULER = "xyz"
+
+
+# An expected output, or a tuple of outputs that are all right (the accuracy table takes the nearest).
+Reference = np.ndarray | tuple[np.ndarray, ...]
 
 
 @dataclass
@@ -84,7 +108,7 @@ class OpSpec:
     skipped: list[str]
     # float64 input -> the expected float64 output, for the accuracy table (default: the rotation of the
     # case, in the target representation)
-    reference: Callable[[np.ndarray], np.ndarray] | None = None
+    reference: Callable[[np.ndarray], Reference] | None = None
     notes: list[str] = field(default_factory=list)
 
 
@@ -244,8 +268,177 @@ def build_ops(quick: bool, dynamic: bool | None = None) -> list[OpSpec]:
         )
     )  # fmt: skip
 
+    # Further conversions and the quaternion operations (issue 46). The two-argument rows take one
+    # packed input, as so3_plus does (PACKED below); every method splits it alike. Each peer's output
+    # agreed with diffquat's to 1e-14 in float64 on random inputs (the layout of each noted where it
+    # differs); jaxlie has no slerp and no distance: they are composed from its group operations, as
+    # its users would write them.
+    def roma_6d() -> Method:
+        import roma
+
+        # the (N, 3, 2) matrix whose columns are a1 and a2
+        return Method("roma", "torch", roma.special_gramschmidt, prep=_columns_6d)
+
+    def pk_6d() -> Method:
+        import pytorch_kinematics as pk
+
+        # pytorch3d's layout: a1 and a2 become the rows of its result, the transpose of diffquat's
+        # default (its "rows" layout); the same Gram-Schmidt, transposed back outside the timing
+        return Method("pytorch-kinematics", "torch", pk.rotation_6d_to_matrix, post=_transpose)
+
+    def euler(library: str, to_matrix: bool) -> Callable[[], Method]:
+        def build() -> Method:
+            if library == "roma":
+                import roma
+
+                if to_matrix:
+                    return Method("roma", "torch", functools.partial(roma.euler_to_rotmat, EULER))
+                return Method("roma", "torch", functools.partial(roma.rotmat_to_euler, EULER))
+            if library == "pytorch-kinematics":
+                import pytorch_kinematics as pk
+
+                # intrinsic sequences only: extrinsic "xyz" is intrinsic "ZYX" with the angles reversed
+                if to_matrix:
+                    return Method(
+                        library, "torch", lambda a: pk.euler_angles_to_matrix(a, "ZYX"), prep=_reversed
+                    )
+                return Method(library, "torch", lambda m: pk.matrix_to_euler_angles(m, "ZYX"), post=_reversed)
+            if library == "jaxlie":
+                import jax.numpy as jnp
+                import jaxlie
+
+                # roll, pitch, yaw about the fixed x, y, z axes: extrinsic "xyz"
+                if to_matrix:
+                    fn = jax.vmap(lambda a: jaxlie.SO3.from_rpy_radians(a[0], a[1], a[2]).as_matrix())
+                else:
+                    fn = jax.vmap(lambda m: jnp.stack(jaxlie.SO3.from_matrix(m).as_rpy_radians()))
+                return Method("jaxlie (jit)", "jax", jax.jit(fn), compiled=True)
+            if to_matrix:
+                return Method("scipy", "numpy", lambda a: Rotation.from_euler(EULER, a).as_matrix())
+            return Method("scipy", "numpy", lambda m: Rotation.from_matrix(m).as_euler(EULER))
+
+        return build
+
+    def quaternion_op(library: str, kind: str) -> Callable[[], Method]:
+        """``kind``: "mul" (p q), "apply" (R(q) v), "slerp" (p, q, t) or "dist" (the angle of p* q),
+        on PACKED's input of that operation."""
+
+        def build() -> Method:
+            if library == "roma":
+                import roma
+
+                fns: dict[str, Callable[[Any], Any]] = {
+                    "mul": lambda x: roma.quat_product(*_split_pair(x)),
+                    "apply": lambda x: roma.quat_action(*_split_quaternion(x)),
+                    "dist": lambda x: roma.unitquat_geodesic_distance(*_split_pair(x)),
+                }
+                return Method("roma", "torch", fns[kind], prep=_xyzw_leading(kind), post=_wxyz_out(kind))
+            if library == "pytorch-kinematics":
+                import pytorch_kinematics as pk
+
+                fns = {
+                    # pk.quaternion_multiply also flips the product to w >= 0, a step diffquat's
+                    # product does not take: its raw product is the same job
+                    "mul": lambda x: pk.quaternion_raw_multiply(*_split_pair(x)),
+                    "apply": lambda x: pk.quaternion_apply(*_split_quaternion(x)),
+                }
+                return Method(library, "torch", fns[kind])
+            if library == "kornia":
+                from kornia.geometry.liegroup import So3
+                from kornia.geometry.quaternion import Quaternion
+
+                fns = {
+                    "mul": lambda x: (Quaternion(x[..., :4]) * Quaternion(x[..., 4:])).data,
+                    "apply": lambda x: So3(Quaternion(x[..., :4])) * x[..., 4:],
+                    "slerp": lambda x: Quaternion(x[..., :4]).slerp(Quaternion(x[..., 4:8]), x[..., 8]).data,
+                }
+                return Method("kornia", "torch", fns[kind])
+            if library == "jaxlie":
+                import jax.numpy as jnp
+                import jaxlie
+
+                def relative(x: Any) -> Any:  # p^-1 q
+                    return jaxlie.SO3(x[:4]).inverse() @ jaxlie.SO3(x[4:8])
+
+                fns = {
+                    "mul": lambda x: (jaxlie.SO3(x[:4]) @ jaxlie.SO3(x[4:])).wxyz,
+                    "apply": lambda x: jaxlie.SO3(x[:4]).apply(x[4:]),
+                    "slerp": lambda x: (jaxlie.SO3(x[:4]) @ jaxlie.SO3.exp(x[8] * relative(x).log())).wxyz,
+                    "dist": lambda x: jnp.linalg.norm(relative(x).log()),
+                }
+                return Method("jaxlie (jit)", "jax", jax.jit(jax.vmap(fns[kind])), compiled=True)
+            if library == "pypose":
+                import pypose as pp
+
+                fns = {
+                    "mul": lambda x: (pp.SO3(x[..., :4]) * pp.SO3(x[..., 4:])).tensor(),
+                    "apply": lambda x: pp.SO3(x[..., :4]).Act(x[..., 4:]),
+                }
+                return Method("pypose", "torch", fns[kind], prep=_xyzw_leading(kind), post=_wxyz_out(kind))
+            numpy_fns: dict[str, Callable[[Any], Any]] = {
+                "mul": lambda x: (Rotation.from_quat(x[..., :4]) * Rotation.from_quat(x[..., 4:])).as_quat(),
+                "apply": lambda x: Rotation.from_quat(x[..., :4]).apply(x[..., 4:]),
+                "dist": lambda x: (
+                    Rotation.from_quat(x[..., :4]).inv() * Rotation.from_quat(x[..., 4:])
+                ).magnitude(),
+            }
+            return Method("scipy", "numpy", numpy_fns[kind], prep=_xyzw_leading(kind), post=_wxyz_out(kind))
+
+        return build
+
+    def matrix_distance(library: str) -> Callable[[], Method]:
+        def build() -> Method:
+            if library == "roma":
+                import roma
+
+                return Method("roma", "torch", lambda x: roma.rotmat_geodesic_distance(*_split_matrices(x)))
+            if library == "pytorch-kinematics":
+                import pytorch_kinematics as pk
+
+                return Method(library, "torch", lambda x: pk.so3_relative_angle(*_split_matrices(x)))
+            if library == "jaxlie":
+                import jax.numpy as jnp
+                import jaxlie
+
+                def distance(x: Any) -> Any:
+                    a, b = _split_matrices(x)
+                    return jnp.linalg.norm(jaxlie.SO3.from_matrix(a.T @ b).log())
+
+                return Method("jaxlie (jit)", "jax", jax.jit(jax.vmap(distance)), compiled=True)
+
+            def scipy_distance(x: np.ndarray) -> np.ndarray:
+                a, b = _split_matrices(x)
+                return (Rotation.from_matrix(a).inv() * Rotation.from_matrix(b)).magnitude()
+
+            return Method("scipy", "numpy", scipy_distance)
+
+        return build
+
+    table.append(
+        ("rotation_6d_to_matrix", "rotation_6d", "matrix", {"roma": roma_6d, "pytorch-kinematics": pk_6d})
+    )
+    for name, source, target, to_matrix in (
+        ("euler_angles_to_matrix", "euler", "matrix", True),
+        ("matrix_to_euler_angles", "matrix", "euler", False),
+    ):
+        libraries = ("roma", "pytorch-kinematics", "jaxlie", "scipy")
+        table.append((name, source, target, {lib: euler(lib, to_matrix) for lib in libraries}))
+    for name, kind, libraries in (
+        ("quaternion_multiply", "mul", ("roma", "pytorch-kinematics", "kornia", "jaxlie", "pypose", "scipy")),
+        ("quaternion_apply", "apply", ("roma", "pytorch-kinematics", "kornia", "jaxlie", "pypose", "scipy")),
+        ("quaternion_slerp", "slerp", ("kornia", "jaxlie")),
+        ("quaternion_geodesic_distance", "dist", ("roma", "jaxlie", "scipy")),
+    ):
+        source, target = PACKED[name]
+        table.append((name, source, target, {lib: quaternion_op(lib, kind) for lib in libraries}))
+    libraries = ("roma", "pytorch-kinematics", "jaxlie", "scipy")
+    table.append(
+        ("matrix_geodesic_distance", *PACKED["matrix_geodesic_distance"],
+         {lib: matrix_distance(lib) for lib in libraries})
+    )  # fmt: skip
+
     # SO(3) as a Lie group. Each peer's own spelling of the operation; where a peer lacks one, the
-    # reason is recorded (LIE_GAPS).
+    # reason is recorded (GAPS).
     def jaxlie_lie(kind: str) -> Callable[[], Method]:
         def build() -> Method:
             import jax.numpy as jnp
@@ -337,7 +530,7 @@ def build_ops(quick: bool, dynamic: bool | None = None) -> list[OpSpec]:
     }
     builders = {"jaxlie": jaxlie_lie, "kornia": kornia_lie, "pypose": pypose_lie, THESEUS: torchlie_lie}
     for name, (source, target, kind) in lie.items():
-        gaps = LIE_GAPS.get(name, {})
+        gaps = GAPS.get(name, {})
         table.append(
             (
                 name,
@@ -350,7 +543,7 @@ def build_ops(quick: bool, dynamic: bool | None = None) -> list[OpSpec]:
     for name, source, target, peers in table:
         if not hasattr(dqt, name):
             continue
-        skipped: list[str] = [f"{peer} ({why})" for peer, why in LIE_GAPS.get(name, {}).items()]
+        skipped: list[str] = [f"{peer} ({why})" for peer, why in GAPS.get(name, {}).items()]
         if name in LIE_REFERENCES:
             skipped.append(THESEUS_AI)
         adapt = ADAPTERS.get(name, lambda fn: fn)
@@ -376,7 +569,7 @@ def build_ops(quick: bool, dynamic: bool | None = None) -> list[OpSpec]:
         for m in methods:
             if m.label == "jaxlie (jit)":
                 m.compiled = True
-        ops.append(OpSpec(name, source, target, methods, skipped, LIE_REFERENCES.get(name)))
+        ops.append(OpSpec(name, source, target, methods, skipped, REFERENCES.get(name)))
     return ops
 
 
@@ -396,6 +589,25 @@ def make_input(representation: str, q: np.ndarray) -> np.ndarray:
     if representation.endswith("+rotvec"):
         base = make_input(representation.split("+")[0], cases.uniform_quaternions(len(q), seed=21))
         return np.concatenate([base.reshape(len(q), -1), rotation.as_rotvec()], axis=-1)
+    if representation in PAIRS:
+        # a random rotation p, then p times the rotation of q: the relative rotation p^-1 (p q) is the
+        # case's (0, 1e-10, near and at pi for the distances and slerp)
+        p = Rotation.from_quat(_xyzw(cases.uniform_quaternions(len(q), seed=21)))
+        if representation == "matrix+matrix":
+            return np.concatenate(
+                [p.as_matrix().reshape(-1, 9), (p * rotation).as_matrix().reshape(-1, 9)], -1
+            )
+        pair = [_wxyz(p.as_quat()), _wxyz((p * rotation).as_quat())]
+        if representation == "quaternion+quaternion+t":
+            pair.append(np.random.default_rng(23).uniform(size=(len(q), 1)))
+        return np.concatenate(pair, axis=-1)
+    if representation == "quaternion+vector":
+        return np.concatenate([q, np.random.default_rng(22).normal(size=(len(q), 3))], axis=-1)
+    if representation == "rotation_6d":  # the first two columns (diffquat's default layout)
+        matrix = rotation.as_matrix()
+        return np.concatenate([matrix[:, :, 0], matrix[:, :, 1]], axis=-1)
+    if representation == "euler":
+        return rotation.as_euler(EULER)
     if representation == "quaternion":
         return q
     if representation == "matrix":
@@ -411,6 +623,96 @@ def _split_matrix(x: Any) -> tuple[Any, Any]:
 def _split_quaternion(x: Any) -> tuple[Any, Any]:
     """A packed (..., 7) input: the (..., 4) quaternion and the (..., 3) rotation vector."""
     return x[..., :4], x[..., 4:]
+
+
+# The packed input and the output of each two-argument operation (one input per call, split by every
+# method alike, as so3_plus's): two scalar-first quaternions (N, 8); a quaternion and a vector (N, 7);
+# two quaternions and t (N, 9); two matrices row-major (N, 18).
+PACKED: dict[str, tuple[str, str]] = {
+    "quaternion_multiply": ("quaternion+quaternion", "quaternion"),
+    "quaternion_apply": ("quaternion+vector", "vector"),
+    "quaternion_slerp": ("quaternion+quaternion+t", "quaternion"),
+    "quaternion_geodesic_distance": ("quaternion+quaternion", "angle"),
+    "matrix_geodesic_distance": ("matrix+matrix", "angle"),
+}
+PAIRS = ("quaternion+quaternion", "quaternion+quaternion+t", "matrix+matrix")
+
+
+def _split_pair(x: Any) -> tuple[Any, Any]:
+    """A packed (..., 8) input: the two (..., 4) quaternions."""
+    return x[..., :4], x[..., 4:]
+
+
+def _split_slerp(x: Any) -> tuple[Any, Any, Any]:
+    """A packed (..., 9) input: the (..., 4) start and end quaternions and the (...) parameter t."""
+    return x[..., :4], x[..., 4:8], x[..., 8]
+
+
+def _split_matrices(x: Any) -> tuple[Any, Any]:
+    """A packed (..., 18) input: the two (..., 3, 3) matrices."""
+    shape = (*x.shape[:-1], 3, 3)
+    return x[..., :9].reshape(shape), x[..., 9:].reshape(shape)
+
+
+def _xyzw_leading(kind: str) -> Callable[[np.ndarray], np.ndarray]:
+    """``prep`` of a scalar-last peer: the packed input's quaternions (two, or one for "apply")
+    scalar last, the rest as it is."""
+    count = 1 if kind == "apply" else 2
+    return lambda x: np.concatenate(
+        [*(_xyzw(x[..., 4 * i : 4 * i + 4]) for i in range(count)), x[..., 4 * count :]], -1
+    )
+
+
+def _wxyz_out(kind: str) -> Callable[[np.ndarray], np.ndarray]:
+    """``post`` of a scalar-last peer: its quaternion output scalar first (vectors and angles as they are)."""
+    return _wxyz if kind in ("mul", "slerp") else (lambda y: y)
+
+
+def _columns_6d(x: np.ndarray) -> np.ndarray:
+    """(..., 6) = (a1, a2) as the (..., 3, 2) matrix of the two columns (roma's input)."""
+    return x.reshape(*x.shape[:-1], 2, 3).swapaxes(-1, -2)
+
+
+def _transpose(m: np.ndarray) -> np.ndarray:
+    return np.swapaxes(m, -1, -2)
+
+
+def _reversed(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a[..., ::-1])
+
+
+def _reference_multiply(x: np.ndarray) -> np.ndarray:
+    p, q = _split_pair(x)
+    return _wxyz((Rotation.from_quat(_xyzw(p)) * Rotation.from_quat(_xyzw(q))).as_quat())
+
+
+def _reference_apply(x: np.ndarray) -> np.ndarray:
+    q, v = _split_quaternion(x)
+    return Rotation.from_quat(_xyzw(q)).apply(v)
+
+
+def _relative(x: np.ndarray) -> tuple[Rotation, Rotation]:
+    """The first rotation of a packed pair of quaternions or matrices, and the relative one p^-1 q."""
+    if x.shape[-1] == 18:
+        a, b = (Rotation.from_matrix(m) for m in _split_matrices(x))
+    else:
+        a, b = (Rotation.from_quat(_xyzw(x[..., i : i + 4])) for i in (0, 4))
+    return a, a.inv() * b
+
+
+def _reference_distance(x: np.ndarray) -> np.ndarray:
+    return _relative(x)[1].magnitude()
+
+
+def _reference_slerp(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """p exp(t log(p^-1 q)) along the shorter arc, and along the other one: both are right at a
+    half-turn (the accuracy table takes the nearer, row by row)."""
+    p, relative = _relative(x)
+    t = x[..., 8:9]
+    v = relative.as_rotvec()
+    angle = np.linalg.norm(v, axis=-1, keepdims=True)
+    other = v - 2 * np.pi * v / np.where(angle > 0, angle, 1)
+    return tuple(_wxyz((p * Rotation.from_rotvec(t * w)).as_quat()) for w in (v, other))
 
 
 def _reference_plus(x: np.ndarray) -> np.ndarray:
@@ -429,18 +731,29 @@ THESEUS_AI = (
     "provide, and SuiteSparse for scikit-sparse; its SO(3) is torchlie's, timed here)"
 )
 # Peers without the operation, and why (recorded in RESULTS.md under "Left out").
-LIE_GAPS: dict[str, dict[str, str]] = {
+GAPS: dict[str, dict[str, str]] = {
     "so3_left_jacobian": {THESEUS: "no left Jacobian of its own, only inside jexp, with exp"},
     "so3_left_jacobian_inverse": {
         "kornia": "no inverse Jacobian",
         THESEUS: "no inverse Jacobian of its own, only inside jlog, with log",
     },
     "quaternion_plus": {THESEUS: "its rotations are matrices only"},
+    "rotation_6d_to_matrix": {"jaxlie": "no 6D representation", "scipy": "no 6D representation"},
+    "euler_angles_to_matrix": {"kornia": "Euler angles to and from quaternions only"},
+    "matrix_to_euler_angles": {"kornia": "Euler angles to and from quaternions only"},
+    "quaternion_slerp": {
+        "roma": "unitquat_slerp takes one grid of steps for the whole batch (steps x batch outputs), "
+        "not a t per pair",
+        "scipy": "Slerp interpolates one sequence of key rotations, not a batch of pairs",
+        "pytorch-kinematics": "quaternion_slerp negates rows of its q and of their dot products in place "
+        "after using them: its backward raises (a variable needed for the gradient was modified by an "
+        "inplace operation), and it writes into the caller's q",
+    },
 }
 
 
 # The expected float64 output of each Lie function (the table's oracles: the defining series, compositions).
-LIE_REFERENCES: dict[str, Callable[[np.ndarray], np.ndarray] | None] = {
+LIE_REFERENCES: dict[str, Callable[[np.ndarray], Reference] | None] = {
     "so3_exp": None,
     "so3_log": None,
     "so3_left_jacobian": cases.oracle_left_jacobian,
@@ -448,12 +761,28 @@ LIE_REFERENCES: dict[str, Callable[[np.ndarray], np.ndarray] | None] = {
     "so3_plus": _reference_plus,
     "quaternion_plus": _reference_quaternion_plus,
 }
+# Every operation's expected float64 output where it is not the rotation of the case itself.
+REFERENCES: dict[str, Callable[[np.ndarray], Reference] | None] = {
+    **LIE_REFERENCES,
+    "quaternion_multiply": _reference_multiply,
+    "quaternion_apply": _reference_apply,
+    "quaternion_slerp": _reference_slerp,
+    "quaternion_geodesic_distance": _reference_distance,
+    "matrix_geodesic_distance": _reference_distance,
+}
 
 
 # The one-input form of each two-argument diffquat function (see the module docstring).
 ADAPTERS: dict[str, Callable[[Callable[..., Any]], Callable[[Any], Any]]] = {
     "so3_plus": lambda fn: lambda x: fn(*_split_matrix(x)),
     "quaternion_plus": lambda fn: lambda x: fn(*_split_quaternion(x)),
+    "quaternion_multiply": lambda fn: lambda x: fn(*_split_pair(x)),
+    "quaternion_apply": lambda fn: lambda x: fn(*_split_quaternion(x)),
+    "quaternion_slerp": lambda fn: lambda x: fn(*_split_slerp(x)),
+    "quaternion_geodesic_distance": lambda fn: lambda x: fn(*_split_pair(x)),
+    "matrix_geodesic_distance": lambda fn: lambda x: fn(*_split_matrices(x)),
+    "euler_angles_to_matrix": lambda fn: lambda x: fn(x, EULER),
+    "matrix_to_euler_angles": lambda fn: lambda x: fn(x, EULER),
 }
 
 
@@ -592,11 +921,16 @@ def accuracy(op: OpSpec, method: Method) -> tuple[float, bool | None]:
         out, grad_finite = _run_with_grad(method, native)
     got = np.asarray(method.post(np.asarray(out, dtype=np.float64)))
     if op.reference is not None:
+        # the reference, or a tuple of outputs that are all right (slerp at a half-turn): the nearest,
+        # row by row; quaternions up to sign
         expected = op.reference(x64)
-        err = float(np.max(np.abs(got - expected).reshape(len(q), -1).max(-1)))
-        if op.target == "quaternion":  # up to sign, row by row
-            flipped = np.abs(got + expected).reshape(len(q), -1).max(-1)
-            err = float(np.max(np.minimum(np.abs(got - expected).reshape(len(q), -1).max(-1), flipped)))
+        candidates = list(expected) if isinstance(expected, tuple) else [expected]
+        if op.target == "quaternion":
+            candidates += [-c for c in candidates]
+        rows = [np.abs(got - c).reshape(len(q), -1).max(-1) for c in candidates]
+        err = float(np.max(np.min(rows, axis=0)))
+    elif op.target == "euler":  # compared as the rotation the angles represent (gimbal lock included)
+        err = _matrix_error(Rotation.from_euler(EULER, got).as_matrix(), rotation.as_matrix())
     elif op.target == "matrix":
         err = _matrix_error(got, rotation.as_matrix())
     elif op.target == "quaternion":

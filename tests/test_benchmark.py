@@ -8,7 +8,9 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -293,3 +295,50 @@ def test_quick_motion_benchmark_writes_results(tmp_path: Path) -> None:
         assert pypose_modes == {"forward", "forward + backward"}
         agreement = results["pypose_agreement"]
         assert agreement and all(r["float64"] < 1e-12 and r["float32"] < 1e-4 for r in agreement)
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_every_method_computes_diffquats_job(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The layout check of ``benchmarks.run``: every method of every operation (``build_ops``), on 16
+    random float32 inputs through its own ``prep`` and ``post``, agrees with diffquat numpy in float64
+    to 1e-4. A peer timed with another layout (rows for columns, scalar last), another Euler convention
+    or another sign rule fails here. Every disagreement is listed, not only the first."""
+    monkeypatch.syspath_prepend(str(ROOT))
+    import jax
+    from scipy.spatial.transform import Rotation
+
+    import diffquat.numpy as dqn
+    from benchmarks import run
+
+    # the peers as the benchmark runs them: jaxlie needs jax's standard promotion rules, not the
+    # strict ones of this suite
+    with jax.numpy_dtype_promotion("standard"), jax.numpy_rank_promotion("allow"):
+        wrong = _layout_disagreements(run, dqn, Rotation)
+    assert not wrong, wrong
+
+
+def _layout_disagreements(run: Any, dqn: Any, Rotation: Any) -> list[str]:
+    """Each method that differs from diffquat numpy in float64, and by how much."""
+
+    def as_rotation(y: Any, target: str) -> Any:
+        if target == "euler":
+            return Rotation.from_euler(run.EULER, y.reshape(-1, 3)).as_matrix()
+        return Rotation.from_rotvec(y.reshape(-1, 3)).as_matrix()
+
+    wrong = []
+    for op in run.build_ops(quick=True):
+        x64 = run.make_input(op.source, run.unit_quaternions(16, seed=5))
+        expected = np.asarray(run.ADAPTERS.get(op.name, lambda fn: fn)(getattr(dqn, op.name))(x64))
+        for method in op.methods:
+            call = run.make_call(method, x64.astype(np.float32), backward=False)
+            assert call is not None
+            got = np.asarray(method.post(np.asarray(call(), dtype=np.float64)))
+            if op.target in ("rotvec", "euler"):  # the same rotation (angles wrap, +-pi alike)
+                err = np.abs(as_rotation(got, op.target) - as_rotation(expected, op.target)).max()
+            elif op.target == "quaternion":  # up to sign, row by row
+                err = np.minimum(np.abs(got - expected).max(-1), np.abs(got + expected).max(-1)).max()
+            else:
+                err = np.abs(got - expected).max()
+            if not err <= 1e-4:
+                wrong.append(f"{op.name}: {method.label} differs by {err:.1e}")
+    return wrong
