@@ -129,10 +129,55 @@ def _try(skipped: list[str], label: str, build: Callable[[], Method | list[Metho
     return built if isinstance(built, list) else [built]
 
 
+def seed_quaternion_to_matrix(xp: Any, q: Any) -> Any:
+    """The baseline of issue 46: the textbook matrix of ``q * rsqrt(|q|^2)`` (no guard of any kind:
+    the zero quaternion is NaN, norms beyond ~1e19 overflow in float32), in any array namespace."""
+    u = q / xp.sqrt(xp.sum(q * q, axis=-1, keepdims=True))
+    w, x, y, z = u[..., 0], u[..., 1], u[..., 2], u[..., 3]
+    rows = [
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ]  # fmt: skip
+    return xp.stack(rows, axis=-1).reshape(*q.shape[:-1], 3, 3)
+
+
+def shepperd_matrix_to_quaternion(xp: Any, m: Any) -> Any:
+    """The baseline of issue 46: Shepperd's method as commonly written, the largest of the four pivots
+    under a square root, the candidate of each pivot built and the largest selected (``where``), no
+    range scaling and no canonical sign (w >= 0 where the trace pivot wins)."""
+    m00, m01, m02 = m[..., 0, 0], m[..., 0, 1], m[..., 0, 2]
+    m10, m11, m12 = m[..., 1, 0], m[..., 1, 1], m[..., 1, 2]
+    m20, m21, m22 = m[..., 2, 0], m[..., 2, 1], m[..., 2, 2]
+    t = [1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22]
+    # 4 |q_k|; the pivots not chosen may be negative (their candidates are discarded)
+    s = [2 * xp.sqrt(xp.abs(x)) for x in t]
+    candidates = [
+        (s[0] / 4, (m21 - m12) / s[0], (m02 - m20) / s[0], (m10 - m01) / s[0]),
+        ((m21 - m12) / s[1], s[1] / 4, (m01 + m10) / s[1], (m02 + m20) / s[1]),
+        ((m02 - m20) / s[2], (m01 + m10) / s[2], s[2] / 4, (m12 + m21) / s[2]),
+        ((m10 - m01) / s[3], (m02 + m20) / s[3], (m12 + m21) / s[3], s[3] / 4),
+    ]
+    use01 = xp.maximum(t[0], t[1]) >= xp.maximum(t[2], t[3])
+    use0, use2 = t[0] >= t[1], t[2] >= t[3]
+    c0, c1, c2, c3 = candidates
+    out = [xp.where(use01, xp.where(use0, c0[i], c1[i]), xp.where(use2, c2[i], c3[i])) for i in range(4)]
+    return xp.stack(out, axis=-1)
+
+
+# The formulas issue 46 sets the conversions against on every path (eager, compiled the same way as
+# diffquat, jax.jit): label and formula(xp, x).
+BASELINES: dict[str, tuple[str, Callable[[Any, Any], Any]]] = {
+    "quaternion_to_matrix": ("seed formula on q rsqrt(|q|^2)", seed_quaternion_to_matrix),
+    "matrix_to_quaternion": ("plain Shepperd formula", shepperd_matrix_to_quaternion),
+}
+
+
 def build_ops(quick: bool, dynamic: bool | None = None) -> list[OpSpec]:
     """Every operation with its methods. ``dynamic`` is ``torch.compile``'s (None: a static graph
     first, then a dynamic one once a second batch size comes)."""
     import jax
+    import jax.numpy as jnp
     import torch
 
     import diffquat.jax as dqj
@@ -154,7 +199,8 @@ def build_ops(quick: bool, dynamic: bool | None = None) -> list[OpSpec]:
     def roma_q2m() -> Method:
         import roma
 
-        return Method("roma", "torch", roma.unitquat_to_rotmat, prep=_xyzw)
+        # the normalising path (diffquat's takes any norm): quat_normalize, then the unit conversion
+        return Method("roma", "torch", lambda q: roma.unitquat_to_rotmat(roma.quat_normalize(q)), prep=_xyzw)
 
     def roma_m2q() -> Method:
         import roma
@@ -182,7 +228,10 @@ def build_ops(quick: bool, dynamic: bool | None = None) -> list[OpSpec]:
     def jaxlie_q2m() -> Method:
         import jaxlie
 
-        return Method("jaxlie (jit)", "jax", jax.jit(jax.vmap(lambda q: jaxlie.SO3(q).as_matrix())))
+        # on q / |q|: jaxlie's SO3 assumes a unit quaternion
+        return Method(
+            "jaxlie (jit)", "jax", jax.jit(jax.vmap(lambda q: jaxlie.SO3(q / jnp.linalg.norm(q)).as_matrix()))
+        )
 
     def jaxlie_m2q() -> Method:
         import jaxlie
@@ -562,6 +611,22 @@ def build_ops(quick: bool, dynamic: bool | None = None) -> list[OpSpec]:
                         compiled=True,
                     )
                 )
+        baseline = BASELINES.get(name)
+        if baseline is not None:
+            label, formula = baseline
+            methods.append(Method(f"{label}, torch eager", "torch", functools.partial(formula, torch)))
+            if not quick:
+                methods.append(
+                    Method(
+                        f"{label}, torch.compile",
+                        "torch",
+                        compiled(functools.partial(formula, torch)),
+                        compiled=True,
+                    )
+                )
+            methods.append(
+                Method(f"{label}, jax.jit", "jax", jax.jit(functools.partial(formula, jnp)), compiled=True)
+            )
         methods.append(Method("diffquat jax.jit", "jax", jax.jit(adapt(getattr(dqj, name))), compiled=True))
         methods.append(Method("diffquat numpy", "numpy", adapt(getattr(dqn, name))))
         for label, build in peers.items():
