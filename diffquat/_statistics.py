@@ -36,14 +36,17 @@ from ._algebra import hamilton, match_rank, series_threshold
 from ._algebra import matrix_geodesic_distance as _matrix_geodesic_distance
 from ._core import (
     canonical,
+    eager_form,
     join_quaternion,
     matrix_to_quaternion,
     normalize_quaternion,
+    normalize_quaternion_eager,
     op,
     quaternion_to_matrix,
     split_quaternion,
     stack_matrix,
     standardize_quaternion,
+    standardize_quaternion_eager,
     wxyz_to_xyzw,
 )
 from ._representations import (
@@ -51,6 +54,7 @@ from ._representations import (
     smallest_eigenvector,
     special_procrustes,
     symmetric_matrix_to_quaternion,
+    upper_entries,
 )
 from ._types import MeanMethod
 
@@ -619,9 +623,12 @@ def _broadcast_samples(xp: Any, x: Any, weights: Any, trailing: int) -> tuple[An
     n = x.shape[-trailing - 1]
     shapes = [x.shape[: x.ndim - trailing - 1]] + ([] if weights is None else [weights.shape[:-1]])
     batch = tuple(xp.broadcast_shapes(*shapes))
-    x = xp.broadcast_to(x, (*batch, n, *x.shape[x.ndim - trailing :]))
-    ones = xp.ones_like(x[(..., *([0] * trailing))])
-    return x, ones if weights is None else xp.broadcast_to(weights, (*batch, n))
+    # broadcast only where a shape differs (static shapes): an expand is an operation in eager torch
+    shape = (*batch, n, *x.shape[x.ndim - trailing :])
+    x = x if tuple(x.shape) == shape else xp.broadcast_to(x, shape)
+    if weights is None:
+        return x, xp.ones_like(x[(..., *([0] * trailing))])
+    return x, weights if tuple(weights.shape) == (*batch, n) else xp.broadcast_to(weights, (*batch, n))
 
 
 def check_method(fname: str, method: str) -> None:
@@ -679,7 +686,9 @@ def rotation_mean(
     if matrices.shape[-3] == 0:  # no samples (a static shape): the documented identity
         return to_matrix(xp, _identity_quaternion(xp, xp.sum(matrices, axis=-3)[..., 0, :]))
     if method == "chordal":
-        return procrustes(xp, xp.sum(w[..., None, None] * matrices, axis=-3))
+        # equal weights: the sum itself (products by 1 are exact, so the same numbers in fewer operations)
+        total = xp.sum(matrices if weights is None else xp.reshape(w, (*w.shape, 1, 1)) * matrices, axis=-3)
+        return procrustes(xp, total)
     q = to_quaternion(xp, matrices)
     x = xp.concat([q, w[..., None]], axis=-1)
     y = (karcher if method == "geodesic" else median)(xp, x)
@@ -721,6 +730,26 @@ def quaternion_mean(
     u = join_quaternion(xp, *split_quaternion(u, scalar_first), True)
     mean = _chordal_quaternion(xp, u, w, eigenvector)
     return mean if scalar_first else wxyz_to_xyzw(xp, mean)
+
+
+@eager_form(of=quaternion_mean)
+def quaternion_mean_eager(
+    xp: Any,
+    q: Any,
+    weights: Any = None,
+    *,
+    scalar_first: bool = True,
+    eigenvector: Callable[[Any, Any], Any] = smallest_eigenvector,
+) -> Any:
+    """:func:`quaternion_mean`, eager form (torch): the same products and the same ``eigh``, with the
+    eager forms of the normalisation and the canonical sign, scalar-last storage reordered by ``roll``
+    (exact), and the upper triangle of ``-K`` read by one gather."""
+    q, w = _broadcast_samples(xp, q, weights, 1)
+    u = normalize_quaternion_eager(xp, q, scalar_first=scalar_first)
+    u = u if scalar_first else xp.roll(u, 1, -1)
+    k = xp.matmul(_transpose(xp, u * w[..., None]), u)
+    mean = standardize_quaternion_eager(xp, eigenvector(xp, -upper_entries(xp, k)), scalar_first=True)
+    return mean if scalar_first else xp.roll(mean, -1, -1)
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -240,10 +240,16 @@ def xyzw_to_wxyz(q: Tensor) -> Tensor:
 
 # The SVD and eigh maps with their closed-form derivatives (see diffquat._representations).
 _special_procrustes = custom_derivative(
-    _rep.special_procrustes, _rep.procrustes_tangent, _rep.procrustes_cotangent
+    _rep.special_procrustes,
+    _rep.procrustes_tangent,
+    _rep.procrustes_cotangent,
+    eager=_rep.procrustes_eager_rules(),
 )
 _smallest_eigenvector = custom_derivative(
-    _rep.smallest_eigenvector, _rep.eigenvector_tangent, _rep.eigenvector_cotangent
+    _rep.smallest_eigenvector,
+    _rep.eigenvector_tangent,
+    _rep.eigenvector_cotangent,
+    eager=_rep.eigenvector_eager_rules(),
 )
 
 
