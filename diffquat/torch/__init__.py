@@ -592,10 +592,18 @@ def matrix_fisher_sample(
 # diffquat._statistics), registered as the SVD and eigh maps are.
 # Their forwards are opaque operators: captures record one call, not the iterations (see _custom).
 _karcher_mean = custom_derivative(
-    _stats.karcher_mean, _stats.karcher_tangent, _stats.karcher_cotangent, result_shape=_stats.mean_shape
+    _stats.karcher_mean,
+    _stats.karcher_tangent,
+    _stats.karcher_cotangent,
+    result_shape=_stats.mean_shape,
+    eager=_stats.karcher_eager_rules(),
 )
 _geodesic_median = custom_derivative(
-    _stats.geodesic_median, _stats.median_tangent, _stats.median_cotangent, result_shape=_stats.mean_shape
+    _stats.geodesic_median,
+    _stats.median_tangent,
+    _stats.median_cotangent,
+    result_shape=_stats.mean_shape,
+    eager=_stats.median_eager_rules(),
 )
 
 
