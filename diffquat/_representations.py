@@ -397,6 +397,70 @@ def special_procrustes(xp: Any, matrix: Any) -> Any:
     return xp.matmul(xp.concat([u[..., :, 0:2], last], axis=-1), vh)
 
 
+def _procrustes_forms() -> tuple[Any, ...]:
+    """The constants of :func:`procrustes_eager`: ``(1, 1, 0)`` and ``(0, 0, 1)`` as columns (the rows
+    of V^T kept and the one that takes the determinant's sign), (3, 9) the coefficients of ``z`` in the nine
+    entries of ``hat(z)`` (row-major), (9, 3) those of ``M_ij`` in ``vee(M - M^T)`` (+-1: each entry
+    of the result is one rounding of two terms), and the identity."""
+    hat = [[0.0] * 9 for _ in range(3)]
+    vee = [[0.0] * 3 for _ in range(9)]
+    for k, (i, j) in enumerate(((2, 1), (0, 2), (1, 0))):  # z_k sits at (i, j) and -z_k at (j, i)
+        hat[k][3 * i + j], hat[k][3 * j + i] = 1.0, -1.0
+        vee[3 * i + j][k], vee[3 * j + i][k] = 1.0, -1.0
+    eye = [[1.0 if i == j else 0.0 for j in range(3)] for i in range(3)]
+    return [[1.0], [1.0], [0.0]], [[0.0], [0.0], [1.0]], hat, vee, eye
+
+
+def procrustes_eager(xp: Any, matrix: Any) -> tuple[Any]:
+    """:func:`special_procrustes`, eager form (torch), ``(R,)``: the same SVD and the same sign test,
+    in fewer operations. Non-finite entries are zeroed by one ``nan_to_num`` before the SVD (LAPACK
+    raises on them, see :func:`_finite_or_zero`; the backend's rule sets those batch elements to NaN
+    after, so which finite matrix they hold is never seen); the determinant's sign scales the last row
+    of V^T by +-1 (an exact product, as the componentwise form's negated column of U)."""
+    keep, last, *_ = constants(xp, matrix, _procrustes_forms)
+    u, _, vh = xp.linalg.svd(matrix.nan_to_num(0.0, 0.0, 0.0))
+    # det(U V^T) = +-1, never 0: its sign is the componentwise form's `< 0` test, exactly
+    sign = (xp.linalg.det(u) * xp.linalg.det(vh)).sign()
+    # U diag(f) V^T as a sum of three products, elementwise: a batched matmul of 3x3 blocks is six
+    # operations in eager torch (its expands and views), this four (no choice rides on the sum)
+    vf = vh * xp.addcmul(keep, sign.reshape(*sign.shape, 1, 1), last)
+    return ((u[..., :, :, None] * vf[..., None, :, :]).sum(-2),)
+
+
+def procrustes_eager_cotangent(xp: Any, matrix: Any, rotation: Any, cotangent: Any | None) -> Any:
+    """:func:`procrustes_cotangent` in vectorised operations (torch): ``B = (tr P + delta) I - P`` as
+    one ``addcmul``, ``vee`` and ``hat`` as products with +-1 coefficient tables, the same solve by the
+    inverse (differentiable to every order, see :func:`_solve`). None for no cotangent (autograd gives
+    none where the rotation's is not asked for)."""
+    if cotangent is None:
+        return None
+    *_, hat, vee, eye = constants(xp, matrix, _procrustes_forms)
+    info = xp.finfo(matrix.dtype)
+    rt = _transpose(xp, rotation)
+    p = xp.matmul(rt, matrix)
+    p = 0.5 * (p + _transpose(xp, p))
+    trace = p.diagonal(0, -2, -1).sum(-1, keepdim=True)
+    # as procrustes_cotangent: the zero matrix gets delta = 1
+    delta = xp.where(trace > info.tiny**0.5, info.eps**0.5 * trace, 1.0)
+    b = xp.addcmul(-p, (trace + delta)[..., None], eye)
+    rhs = xp.matmul(xp.matmul(rt, cotangent).flatten(-2), vee)
+    z = xp.matmul(xp.linalg.inv(b), rhs[..., None])[..., 0]
+    return xp.matmul(rotation, xp.matmul(z, hat).unflatten(-1, (3, 3)))
+
+
+def procrustes_eager_rules() -> tuple[Callable[..., Any], ...]:
+    """``special_procrustes``'s eager form as ``custom_derivative`` takes it: (prepare, forward,
+    cotangent, finish), the input and the result as they are."""
+
+    def identity(xp: Any, x: Any) -> Any:
+        return x
+
+    def finish(xp: Any, x: Any, y: Any) -> Any:
+        return y
+
+    return identity, procrustes_eager, procrustes_eager_cotangent, finish
+
+
 # ---------------------------------------------------------------------------------------------------
 # 10D (Peretroukhin et al., RSS 2020)
 
@@ -462,6 +526,66 @@ def eigenvector_cotangent(xp: Any, a: Any, q: Any, cotangent: Any) -> Any:
     """dL/da for dL/dq = ``cotangent``: ``dL/dA = -((A - l0 I)^+ g) q^T``, folded onto the 10 entries."""
     k = _resolvent(xp, a, q, cotangent)
     return _upper(xp, k[..., :, None] * q[..., None, :])
+
+
+def _symmetric_positions() -> tuple[Any, ...]:
+    """The constants of the eigenvector's eager form: (16,) the position among the 10 upper entries of
+    each entry of the 4x4 matrix (row-major), (10,) the position among the 16 of each upper entry,
+    the (4, 4) mask of the upper triangle and the identity."""
+    upper = [[1.0 if i <= j else 0.0 for j in range(4)] for i in range(4)]
+    eye = [[1.0 if i == j else 0.0 for j in range(4)] for i in range(4)]
+    return [_INDEX[(i, j)] for i in range(4) for j in range(4)], [4 * i + j for i, j in _UPPER], upper, eye
+
+
+def upper_entries(xp: Any, m: Any) -> Any:
+    """The ``(..., 10)`` upper triangle (row by row) of ``(..., 4, 4)`` matrices, by one gather (torch):
+    the eager forms' :func:`_symmetric` in reverse."""
+    _, positions, *_ = constants(xp, m, _symmetric_positions)
+    return m.flatten(-2).index_select(-1, positions)
+
+
+def _eigenvector_prepare(xp: Any, a: Any) -> Any:
+    """The symmetric matrix of ``a`` (..., 10), by one gather (torch): its derivative, the gather's
+    (a scatter-add), folds the 4x4 cotangent onto the 10 entries as :func:`_upper` does."""
+    positions, *_ = constants(xp, a, _symmetric_positions)
+    return a.index_select(-1, positions).unflatten(-1, (4, 4))
+
+
+def _eigenvector_eager(xp: Any, m: Any) -> tuple[Any]:
+    """:func:`smallest_eigenvector` of the symmetric matrix ``m`` (..., 4, 4), eager form (torch): the
+    same ``eigh`` of the same entries. Non-finite entries are zeroed by one ``nan_to_num`` (LAPACK
+    raises on them); the backend's rule sets those batch elements to NaN after."""
+    return (xp.linalg.eigh(m.nan_to_num(0.0, 0.0, 0.0))[1][..., :, 0],)
+
+
+def _eigenvector_eager_cotangent(xp: Any, m: Any, q: Any, cotangent: Any | None) -> Any:
+    """:func:`eigenvector_cotangent` in vectorised operations (torch), as a cotangent of the 4x4 matrix
+    ``m`` (the gather of :func:`_eigenvector_prepare` folds it): ``k q^T`` with ``k`` the resolvent
+    of :func:`_resolvent`, whose ``C`` is one ``addcmul``. None for no cotangent."""
+    if cotangent is None:
+        return None
+    *_, upper, eye = constants(xp, m, _symmetric_positions)
+    info = xp.finfo(m.dtype)
+    l0 = (q * xp.matmul(m, q[..., None])[..., 0]).sum(-1, keepdim=True)
+    size = (m.abs() * upper).sum((-2, -1))[..., None]  # sum |a| over the 10 entries
+    floor = size > info.tiny**0.5
+    delta = xp.where(floor, info.eps**0.5 * size, 1.0)
+    kappa = xp.where(floor, size, 1.0)
+    c = xp.addcmul(m, (delta - l0)[..., None], eye) + (kappa * q)[..., :, None] * q[..., None, :]
+    pv = cotangent - (q * cotangent).sum(-1, keepdim=True) * q
+    w = xp.matmul(xp.linalg.inv(c), pv[..., None])[..., 0]
+    k = (q * w).sum(-1, keepdim=True) * q - w
+    return k[..., :, None] * q[..., None, :]
+
+
+def eigenvector_eager_rules() -> tuple[Callable[..., Any], ...]:
+    """``smallest_eigenvector``'s eager form as ``custom_derivative`` takes it: (prepare, forward,
+    cotangent, finish)."""
+
+    def finish(xp: Any, a: Any, q: Any) -> Any:
+        return q
+
+    return _eigenvector_prepare, _eigenvector_eager, _eigenvector_eager_cotangent, finish
 
 
 def smallest_eigenvector(xp: Any, a: Any) -> Any:

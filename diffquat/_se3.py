@@ -1128,6 +1128,34 @@ def se3_mean(xp: Any, matrices: Any, weights: Any = None, *, rotation_mean: Any,
     return _with_bottom(xp, xp.concat([rotation, _column(translation)], axis=-1))
 
 
+@eager_form(of=se3_mean)
+def se3_mean_eager(
+    xp: Any, matrices: Any, weights: Any = None, *, rotation_mean: Any, procrustes: Any
+) -> Any:
+    """:func:`se3_mean`, eager form: one weighted sum of the whole poses ``S = sum_i w_i T_i`` holds
+    both sums, the rotations' (top-left block: what ``rotation_mean``'s chordal form projects, the same
+    products and sums) and the translations' (top-right column); ``S / total`` gives the translation,
+    and the result is ``pad(R) + S / total`` masked to its column ``+ e4 e4^T`` (exact bottom row)."""
+    _, corner, _, column, _ = constants(xp, matrices, _pose_masks)
+    n = matrices.shape[-3]
+    shapes = [matrices.shape[:-3]] + ([] if weights is None else [weights.shape[:-1]])
+    batch = tuple(xp.broadcast_shapes(*shapes))
+    if tuple(matrices.shape) != (*batch, n, 4, 4):
+        matrices = xp.broadcast_to(matrices, (*batch, n, 4, 4))
+    if weights is None:  # equal weights: the sums themselves (products by 1 are exact)
+        total = xp.full((*batch, 1, 1), float(n), dtype=matrices.dtype, device=matrices.device)
+        summed = xp.sum(matrices, axis=-3)
+    else:
+        w = weights if tuple(weights.shape) == (*batch, n) else xp.broadcast_to(weights, (*batch, n))
+        total = xp.sum(w, axis=-1).reshape(*batch, 1, 1)
+        summed = xp.sum(xp.reshape(w, (*batch, n, 1, 1)) * matrices, axis=-3)
+    rotation = procrustes(xp, summed[..., :3, :3])
+    total = xp.where(total > 0, total, 1.0)
+    # corner + (S / total) masked to the translation column (its -1s, negated again), plus R padded
+    top = xp.addcmul(corner, summed / total, column, value=-1.0)
+    return top + xp.nn.functional.pad(rotation, (0, 1, 0, 1))
+
+
 def _centred(xp: Any, source: Any, target: Any, weights: Any) -> tuple[Any, ...]:
     """Broadcast ``source``, ``target`` ``(..., N, 3)`` and weights ``(..., N)``; their weighted
     centroids ``(..., 3)``, the weighted cross-covariance ``sum_i w_i (t_i - ct) (s_i - cs)^T`` and the

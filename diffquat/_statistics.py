@@ -32,18 +32,27 @@ from typing import Any
 
 import numpy as np
 
-from ._algebra import hamilton, match_rank, series_threshold
+from ._algebra import (
+    hamilton,
+    match_rank,
+    quaternion_conjugate_eager,
+    quaternion_multiply_eager,
+    series_threshold,
+)
 from ._algebra import matrix_geodesic_distance as _matrix_geodesic_distance
 from ._core import (
     canonical,
+    eager_form,
     join_quaternion,
     matrix_to_quaternion,
     normalize_quaternion,
+    normalize_quaternion_eager,
     op,
     quaternion_to_matrix,
     split_quaternion,
     stack_matrix,
     standardize_quaternion,
+    standardize_quaternion_eager,
     wxyz_to_xyzw,
 )
 from ._representations import (
@@ -51,6 +60,7 @@ from ._representations import (
     smallest_eigenvector,
     special_procrustes,
     symmetric_matrix_to_quaternion,
+    upper_entries,
 )
 from ._types import MeanMethod
 
@@ -611,6 +621,91 @@ def median_cotangent(xp: Any, x: Any, y: Any, gy: Any) -> Any:
 
 
 # ---------------------------------------------------------------------------------------------------
+# The geodesic means' reverse rules in vectorised operations (torch, eager): the same formulas as
+# karcher_cotangent and median_cotangent, with their products of quaternions as one product with the
+# Hamilton coefficients (quaternion_multiply_eager) and cross products as linalg.cross. Every selection
+# (the sign of y* q_i, the series switches, the coincident samples) is the componentwise one, read from
+# the same componentwise quantities: only values that no choice reads are computed otherwise.
+
+
+def _cross_eager(xp: Any, a: Any, b: Any) -> Any:
+    return xp.linalg.cross(a, b)
+
+
+def _rotation_of_cotangent_eager(xp: Any, y: Any, gy: Any) -> Any:
+    """:func:`_rotation_of_cotangent`: ``vec(y* gy) / 2``."""
+    return 0.5 * quaternion_multiply_eager(xp, quaternion_conjugate_eager(xp, y), gy)[..., 1:]
+
+
+def _right_perturbations_transposed_eager(xp: Any, u: Any, g: Any) -> Any:
+    """:func:`_right_perturbations_transposed`: ``2 u_i (0, g_i) / |u_i|^2``."""
+    pure = xp.nn.functional.pad(g, (1, 0))
+    return quaternion_multiply_eager(xp, u, pure) * (2.0 / xp.sum(u * u, axis=-1, keepdims=True))
+
+
+def _jacobian_inverse_eager(xp: Any, v: Any, c: Any, x: Any, right: bool) -> Any:
+    """:func:`_jacobian_inverse` with ``linalg.cross``."""
+    vx = _cross_eager(xp, v, x)
+    return x + (0.5 if right else -0.5) * vx + c[..., None] * _cross_eager(xp, v, vx)
+
+
+def _solve3_transposed_eager(xp: Any, a: Any, b: Any) -> Any:
+    """:func:`_solve3_transposed`, ``a^-T b`` by the adjugate: ``a``'s columns are the rows of ``a^T``,
+    whose cofactor rows are the cross products of ``a``'s rows, as :func:`_solve3` forms them."""
+    r0, r1, r2 = a.unbind(-2)
+    k = xp.stack([_cross_eager(xp, r1, r2), _cross_eager(xp, r2, r0), _cross_eager(xp, r0, r1)], axis=-2)
+    det = _dot(xp, r0, k[..., 0, :])
+    return xp.matmul(k, b[..., None])[..., 0] / det[..., None]
+
+
+def karcher_eager_cotangent(xp: Any, x: Any, y: Any, gy: Any | None) -> Any:
+    """:func:`karcher_cotangent`, eager form (torch). None for no cotangent."""
+    if gy is None:
+        return None
+    u, w, v, c, total, a = _karcher_system(xp, x, y)
+    gb = _solve3_transposed_eager(xp, a, _rotation_of_cotangent_eager(xp, y, gy))[..., None, :]
+    gd = w[..., None] * _jacobian_inverse_eager(xp, v, c, xp.broadcast_to(gb, v.shape), right=False)
+    gomega = xp.sum(v * gb, axis=-1, keepdims=True) / total[..., None]
+    return xp.concat([_right_perturbations_transposed_eager(xp, u, gd), gomega], axis=-1)
+
+
+def median_eager_cotangent(xp: Any, x: Any, y: Any, gy: Any | None) -> Any:
+    """:func:`median_cotangent`, eager form (torch). None for no cotangent."""
+    if gy is None:
+        return None
+    u, w, total, at, snapped, weight_at, n, cot, b = _median_system(xp, x, y)
+    ge = _rotation_of_cotangent_eager(xp, y, gy)
+    free = xp.where(snapped[..., None], 0.0, _solve3_transposed_eager(xp, b, ge))[..., None, :]
+    gfollow = xp.where(snapped[..., None], ge / weight_at[..., None], 0.0)[..., None, :]
+    off = xp.where(at, 0.0, w)[..., None]
+    free = xp.broadcast_to(free, n.shape)
+    along = free - n * _dot(xp, n, free)[..., None]
+    gd = off * 0.5 * (cot[..., None] * along - _cross_eager(xp, n, free))
+    gd = gd + xp.where(at, w, 0.0)[..., None] * gfollow
+    gomega = xp.sum(n * free, axis=-1, keepdims=True) / total[..., None]
+    return xp.concat([_right_perturbations_transposed_eager(xp, u, gd), gomega], axis=-1)
+
+
+def _same(xp: Any, x: Any) -> Any:
+    return x
+
+
+def _result(xp: Any, x: Any, y: Any) -> Any:
+    return y
+
+
+def karcher_eager_rules() -> tuple[Any, ...]:
+    """The Karcher mean's eager rule as ``custom_derivative`` takes it: (prepare, forward, cotangent,
+    finish), the forward None: the map's own (opaque) forward."""
+    return _same, None, karcher_eager_cotangent, _result
+
+
+def median_eager_rules() -> tuple[Any, ...]:
+    """The geodesic median's eager rule, as :func:`karcher_eager_rules`."""
+    return _same, None, median_eager_cotangent, _result
+
+
+# ---------------------------------------------------------------------------------------------------
 # Public functions.
 
 
@@ -619,9 +714,12 @@ def _broadcast_samples(xp: Any, x: Any, weights: Any, trailing: int) -> tuple[An
     n = x.shape[-trailing - 1]
     shapes = [x.shape[: x.ndim - trailing - 1]] + ([] if weights is None else [weights.shape[:-1]])
     batch = tuple(xp.broadcast_shapes(*shapes))
-    x = xp.broadcast_to(x, (*batch, n, *x.shape[x.ndim - trailing :]))
-    ones = xp.ones_like(x[(..., *([0] * trailing))])
-    return x, ones if weights is None else xp.broadcast_to(weights, (*batch, n))
+    # broadcast only where a shape differs (static shapes): an expand is an operation in eager torch
+    shape = (*batch, n, *x.shape[x.ndim - trailing :])
+    x = x if tuple(x.shape) == shape else xp.broadcast_to(x, shape)
+    if weights is None:
+        return x, xp.ones_like(x[(..., *([0] * trailing))])
+    return x, weights if tuple(weights.shape) == (*batch, n) else xp.broadcast_to(weights, (*batch, n))
 
 
 def check_method(fname: str, method: str) -> None:
@@ -679,7 +777,9 @@ def rotation_mean(
     if matrices.shape[-3] == 0:  # no samples (a static shape): the documented identity
         return to_matrix(xp, _identity_quaternion(xp, xp.sum(matrices, axis=-3)[..., 0, :]))
     if method == "chordal":
-        return procrustes(xp, xp.sum(w[..., None, None] * matrices, axis=-3))
+        # equal weights: the sum itself (products by 1 are exact, so the same numbers in fewer operations)
+        total = xp.sum(matrices if weights is None else xp.reshape(w, (*w.shape, 1, 1)) * matrices, axis=-3)
+        return procrustes(xp, total)
     q = to_quaternion(xp, matrices)
     x = xp.concat([q, w[..., None]], axis=-1)
     y = (karcher if method == "geodesic" else median)(xp, x)
@@ -721,6 +821,26 @@ def quaternion_mean(
     u = join_quaternion(xp, *split_quaternion(u, scalar_first), True)
     mean = _chordal_quaternion(xp, u, w, eigenvector)
     return mean if scalar_first else wxyz_to_xyzw(xp, mean)
+
+
+@eager_form(of=quaternion_mean)
+def quaternion_mean_eager(
+    xp: Any,
+    q: Any,
+    weights: Any = None,
+    *,
+    scalar_first: bool = True,
+    eigenvector: Callable[[Any, Any], Any] = smallest_eigenvector,
+) -> Any:
+    """:func:`quaternion_mean`, eager form (torch): the same products and the same ``eigh``, with the
+    eager forms of the normalisation and the canonical sign, scalar-last storage reordered by ``roll``
+    (exact), and the upper triangle of ``-K`` read by one gather."""
+    q, w = _broadcast_samples(xp, q, weights, 1)
+    u = normalize_quaternion_eager(xp, q, scalar_first=scalar_first)
+    u = u if scalar_first else xp.roll(u, 1, -1)
+    k = xp.matmul(_transpose(xp, u * w[..., None]), u)
+    mean = standardize_quaternion_eager(xp, eigenvector(xp, -upper_entries(xp, k)), scalar_first=True)
+    return mean if scalar_first else xp.roll(mean, -1, -1)
 
 
 # ---------------------------------------------------------------------------------------------------

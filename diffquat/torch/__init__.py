@@ -240,10 +240,16 @@ def xyzw_to_wxyz(q: Tensor) -> Tensor:
 
 # The SVD and eigh maps with their closed-form derivatives (see diffquat._representations).
 _special_procrustes = custom_derivative(
-    _rep.special_procrustes, _rep.procrustes_tangent, _rep.procrustes_cotangent
+    _rep.special_procrustes,
+    _rep.procrustes_tangent,
+    _rep.procrustes_cotangent,
+    eager=_rep.procrustes_eager_rules(),
 )
 _smallest_eigenvector = custom_derivative(
-    _rep.smallest_eigenvector, _rep.eigenvector_tangent, _rep.eigenvector_cotangent
+    _rep.smallest_eigenvector,
+    _rep.eigenvector_tangent,
+    _rep.eigenvector_cotangent,
+    eager=_rep.eigenvector_eager_rules(),
 )
 
 
@@ -586,10 +592,18 @@ def matrix_fisher_sample(
 # diffquat._statistics), registered as the SVD and eigh maps are.
 # Their forwards are opaque operators: captures record one call, not the iterations (see _custom).
 _karcher_mean = custom_derivative(
-    _stats.karcher_mean, _stats.karcher_tangent, _stats.karcher_cotangent, result_shape=_stats.mean_shape
+    _stats.karcher_mean,
+    _stats.karcher_tangent,
+    _stats.karcher_cotangent,
+    result_shape=_stats.mean_shape,
+    eager=_stats.karcher_eager_rules(),
 )
 _geodesic_median = custom_derivative(
-    _stats.geodesic_median, _stats.median_tangent, _stats.median_cotangent, result_shape=_stats.mean_shape
+    _stats.geodesic_median,
+    _stats.median_tangent,
+    _stats.median_cotangent,
+    result_shape=_stats.mean_shape,
+    eager=_stats.median_eager_rules(),
 )
 
 

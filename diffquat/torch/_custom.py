@@ -220,14 +220,24 @@ def custom_derivative(
     (:func:`_opaque`). With ``formula_when_captured``, a capture records the forward's own operations,
     whose autodiff is the map's exact derivative to every order.
 
-    With ``eager`` (``_core.eager_rules``: prepare, forward, cotangent, finish), an eager
+    With ``eager`` (``_core.eager_rules``: prepare, forward, cotangent, finish; a forward None: the
+    map's own, as the opaque geodesic means keep theirs), an eager
     call outside forward mode takes the map's eager form (few vectorised operations) with its own
     rules, registered by :func:`_lean` (:func:`form` decides, as above); forward mode (an open dual
     level: ``jvp``, ``jacfwd``, ``hessian``) keeps the Function below, exact to every order through
     its copy of ``x``."""
-    lean = None if eager is None else _lean(eager[1], eager[2], forward.__name__)
     if result_shape is not None:
         forward = _opaque(forward, result_shape)
+
+    # An eager rule whose forward is None reuses the map's own (the geodesic means: their opaque
+    # operator, whose iterations no rule looks into); its cotangent is the lean one.
+    def own_forward(xp: Any, u: Tensor) -> tuple[Tensor]:
+        return (forward(xp, u).contiguous(),)
+
+    eager_forward: Callable[..., tuple[Tensor, ...]] = own_forward
+    if eager is not None and eager[1] is not None:
+        eager_forward = eager[1]
+    lean = None if eager is None else _lean(eager_forward, eager[2], forward.__name__)
 
     class Eager(torch.autograd.Function):
         """Returns ``(y, copy of x)``. The copy is what ``jvp`` reads x from: autograd calls ``jvp``
@@ -276,9 +286,9 @@ def custom_derivative(
             and forward_ad._current_level < 0
             and exact_products(x)
         ):
-            prepare, formula, *_, finish = eager
+            prepare, *_, finish = eager
             u = prepare(torch, x)
-            return finish(torch, x, (lean(u) if chosen == "rule" else formula(torch, u))[0])
+            return finish(torch, x, (lean(u) if chosen == "rule" else eager_forward(torch, u))[0])
         if chosen == "rule":
             return Eager.apply(x)[0]  # type: ignore[no-untyped-call]
         if chosen == "formula":
