@@ -38,6 +38,7 @@ from typing import Any
 
 from ._algebra import (
     _hamilton_forms,
+    _log_eager,
     axis_angle_to_matrix,
     hamilton,
     match_rank,
@@ -60,7 +61,7 @@ from ._core import (
     wxyz_to_xyzw,
     xyzw_to_wxyz,
 )
-from ._lie import quaternion_minus, quaternion_minus_eager, quaternion_plus, quaternion_plus_eager
+from ._lie import _join, _product, _unit, quaternion_minus, quaternion_plus, quaternion_plus_eager
 from ._se3 import _bottom_row, _with_bottom, se3_compose, se3_exp, se3_minus
 
 FRAMES = ("body", "space")
@@ -865,9 +866,14 @@ def angular_velocity_from_quaternions_eager(
     xp: Any, q: Any, dt: Any, *, frame: str = "body", scalar_first: bool = True
 ) -> Any:
     """:func:`bound_angular_velocity_from_quaternions`, eager form: ``quaternion_minus``'s eager form
-    of consecutive samples, divided by the step."""
+    of consecutive samples (its unit quaternions, relative rotation and logarithm), each sample made
+    unit once (the componentwise form makes the inner ones unit twice, to the same bits: the map is
+    row by row), divided by the step."""
     body = check_frame("angular_velocity_from_quaternions", frame)
-    side = "right" if body else "left"
-    log = quaternion_minus_eager(xp, q[..., 1:, :], q[..., :-1, :], side=side, scalar_first=scalar_first)
+    w, v = _unit(xp, q, scalar_first)
+    later = (w[..., 1:, :], v[..., 1:, :])
+    inverse = (w[..., :-1, :], -v[..., :-1, :])
+    relative = _product(inverse, later, xp) if body else _product(later, inverse, xp)
+    log = _log_eager(xp, _join(xp, *relative, True))[0]
     log, step = match_rank(xp, log, dt[..., None, None])
     return log / step
