@@ -37,15 +37,20 @@ from fractions import Fraction
 from typing import Any
 
 from ._algebra import (
+    _hamilton_forms,
+    _log_eager,
     axis_angle_to_matrix,
     hamilton,
     match_rank,
     matrix_to_axis_angle,
     quaternion_invert,
+    quaternion_invert_eager,
     quaternion_slerp,
 )
 from ._core import (
     Conversion,
+    constants,
+    eager_form,
     join_quaternion,
     matrix_to_quaternion,
     normalize_quaternion,
@@ -56,7 +61,7 @@ from ._core import (
     wxyz_to_xyzw,
     xyzw_to_wxyz,
 )
-from ._lie import quaternion_minus, quaternion_plus
+from ._lie import _join, _product, _unit, quaternion_minus, quaternion_plus, quaternion_plus_eager
 from ._se3 import _bottom_row, _with_bottom, se3_compose, se3_exp, se3_minus
 
 FRAMES = ("body", "space")
@@ -772,3 +777,103 @@ def split_se3_bspline(xp: Any, packed: Any) -> tuple[Any, Any, Any]:
     top = xp.reshape(packed[..., :12], (*packed.shape[:-1], 3, 4))
     corner = top[..., :1, :1]
     return xp.concat([top, _bottom_row(xp, corner - corner)], axis=-2), packed[..., 12:18], packed[..., 18:]
+
+
+# ---------------------------------------------------------------------------------------------------
+# Eager forms of the rates (see ``_core``'s note on eager forms): the same products of quaternions as
+# above, each one outer product contracted with constant Hamilton coefficients (one ``matmul``), the
+# inverse by ``quaternion_invert``'s eager form. No selection or sign rides on the contractions.
+
+
+def _rate_forms() -> tuple[Any, ...]:
+    """The Hamilton coefficients (16, 4) (:func:`_algebra._hamilton_forms`), their vector part times 2
+    (the rate ``2 vec(.)``: a power of two, exact), and the (12, 4) coefficients of ``q (0, v) / 2``
+    (row ``3 i + j``: ``q_i v_j``) and of ``(0, v) q / 2`` (row ``3 i + j``: ``v_j q_i``)."""
+    (c,) = _hamilton_forms()
+    twice = [[2.0 * v for v in row[1:]] for row in c]
+    body = [[0.5 * v for v in c[4 * i + j + 1]] for i in range(4) for j in range(3)]
+    space = [[0.5 * v for v in c[4 * (j + 1) + i]] for i in range(4) for j in range(3)]
+    return c, twice, body, space
+
+
+def _bilinear(xp: Any, p: Any, q: Any, forms: Any) -> Any:
+    """A bilinear map of ``p`` ``(..., m)`` and ``q`` ``(..., n)``: their outer product, flattened
+    (row ``n i + j``: ``p_i q_j``), contracted with ``forms`` ``(m n, k)``."""
+    return xp.matmul((p[..., :, None] * q[..., None, :]).flatten(-2), forms)
+
+
+@eager_form(of=angular_velocity)
+def angular_velocity_eager(
+    xp: Any, q: Any, q_dot: Any, *, frame: str = "body", scalar_first: bool = True
+) -> Any:
+    """:func:`angular_velocity`, eager form: ``quaternion_invert``'s eager form, then the vector part of
+    its product with ``q'`` times 2, one contraction."""
+    body = check_frame("angular_velocity", frame)
+    q, q_dot = match_rank(xp, q, q_dot)
+    if not scalar_first:
+        q, q_dot = xp.roll(q, 1, -1), xp.roll(q_dot, 1, -1)
+    _, twice, _, _ = constants(xp, q, _rate_forms)
+    inv = quaternion_invert_eager(xp, q)
+    return _bilinear(xp, inv, q_dot, twice) if body else _bilinear(xp, q_dot, inv, twice)
+
+
+@eager_form(of=quaternion_derivative)
+def quaternion_derivative_eager(
+    xp: Any, q: Any, omega: Any, *, frame: str = "body", scalar_first: bool = True
+) -> Any:
+    """:func:`quaternion_derivative`, eager form: ``q (0, w) / 2`` or ``(0, w) q / 2`` as one
+    contraction of the outer product ``q w^T`` with constant coefficients."""
+    body = check_frame("quaternion_derivative", frame)
+    q, omega = match_rank(xp, q, omega)
+    if not scalar_first:
+        q = xp.roll(q, 1, -1)
+    _, _, right, left = constants(xp, q, _rate_forms)
+    out = _bilinear(xp, q, omega, right if body else left)
+    return out if scalar_first else xp.roll(out, -1, -1)
+
+
+@eager_form(of=angular_acceleration)
+def angular_acceleration_eager(
+    xp: Any, q: Any, q_dot: Any, q_ddot: Any, *, frame: str = "body", scalar_first: bool = True
+) -> Any:
+    """:func:`angular_acceleration`, eager form: ``a = q^-1 q'`` (or ``q' q^-1``) and ``2 vec(q^-1
+    q'')`` as two contractions with the one inverse, then ``2 vec(q^-1 q'') - 4 a_w vec(a)``."""
+    body = check_frame("angular_acceleration", frame)
+    q, q_dot, q_ddot = match_rank(xp, q, q_dot, q_ddot)
+    if not scalar_first:
+        q, q_dot, q_ddot = xp.roll(q, 1, -1), xp.roll(q_dot, 1, -1), xp.roll(q_ddot, 1, -1)
+    c, twice, _, _ = constants(xp, q, _rate_forms)
+    inv = quaternion_invert_eager(xp, q)
+    a = _bilinear(xp, inv, q_dot, c) if body else _bilinear(xp, q_dot, inv, c)
+    cv = _bilinear(xp, inv, q_ddot, twice) if body else _bilinear(xp, q_ddot, inv, twice)
+    return cv - (4.0 * a[..., :1]) * a[..., 1:]
+
+
+@eager_form(of=integrate_angular_velocity)
+def integrate_angular_velocity_eager(
+    xp: Any, q: Any, omega: Any, dt: Any, *, frame: str = "body", scalar_first: bool = True
+) -> Any:
+    """:func:`integrate_angular_velocity`, eager form: the same rotation vector, then
+    ``quaternion_plus``'s eager form."""
+    body = check_frame("integrate_angular_velocity", frame)
+    omega, step = match_rank(xp, omega, dt[..., None])
+    side = "right" if body else "left"
+    return quaternion_plus_eager(xp, q, _within_range(xp, omega * step), side=side, scalar_first=scalar_first)
+
+
+@eager_form(of=bound_angular_velocity_from_quaternions)
+def angular_velocity_from_quaternions_eager(
+    xp: Any, q: Any, dt: Any, *, frame: str = "body", scalar_first: bool = True
+) -> Any:
+    """:func:`bound_angular_velocity_from_quaternions`, eager form: ``quaternion_minus``'s eager form
+    of consecutive samples (its unit quaternions, relative rotation and logarithm), each sample made
+    unit once (the componentwise form makes the inner ones unit twice, to the same bits: the map is
+    row by row), divided by the step."""
+    body = check_frame("angular_velocity_from_quaternions", frame)
+    w, v = _unit(xp, q, scalar_first)
+    later = (w[..., 1:, :], v[..., 1:, :])
+    inverse = (w[..., :-1, :], -v[..., :-1, :])
+    relative = _product(inverse, later, xp) if body else _product(later, inverse, xp)
+    log = _log_eager(xp, _join(xp, *relative, True))[0]
+    log, step = match_rank(xp, log, dt[..., None, None])
+    return log / step

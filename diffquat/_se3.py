@@ -36,7 +36,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-from ._algebra import axis_angle_to_matrix, match_rank, matrix_to_axis_angle
+from ._algebra import axis_angle_to_matrix, axis_angle_to_matrix_eager, match_rank, matrix_to_axis_angle
 from ._core import (
     Conversion,
     cancelling_factor,
@@ -1318,6 +1318,11 @@ def rotation_between_vectors(
         antiparallel vectors, where the rotation jumps; near them they grow like the axis'
         conditioning, ``1 / sin(angle)``.
     """
+    return axis_angle_to_matrix(xp, _rotation_vector_between(xp, a, b), to_matrix=to_matrix)
+
+
+def _rotation_vector_between(xp: Any, a: Any, b: Any) -> Any:
+    """The rotation vector ``(..., 3)`` of :func:`rotation_between_vectors`, its conventions."""
     a, b = match_rank(xp, a, b)
     # each divided by its largest component: the result is scale invariant, and no product over- or
     # underflows (a constant of differentiation: it cancels)
@@ -1351,7 +1356,16 @@ def rotation_between_vectors(
         math.pi * _perpendicular(xp, xp.where(antiparallel[..., None], a, 1.0)),
         f[..., None] * c,
     )
-    return axis_angle_to_matrix(xp, rotvec, to_matrix=to_matrix)
+    return rotvec
+
+
+@eager_form(of=rotation_between_vectors)
+def rotation_between_vectors_eager(
+    xp: Any, a: Any, b: Any, *, to_matrix: Conversion = unit_quaternion_to_matrix
+) -> Any:
+    """:func:`rotation_between_vectors`, eager form: the same rotation vector (its selections are
+    the componentwise form's), then ``axis_angle_to_matrix``'s eager form."""
+    return axis_angle_to_matrix_eager(xp, _rotation_vector_between(xp, a, b), to_matrix=to_matrix)
 
 
 @op(x1=(3,), x2=(3,), x3=(3,))

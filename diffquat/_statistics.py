@@ -42,6 +42,7 @@ from ._algebra import (
 from ._algebra import matrix_geodesic_distance as _matrix_geodesic_distance
 from ._core import (
     canonical,
+    constants,
     eager_form,
     join_quaternion,
     matrix_to_quaternion,
@@ -875,9 +876,50 @@ def symmetric_geodesic_distance(xp: Any, matrix1: Any, matrix2: Any, group: Any)
     m = xp.matmul(_transpose(xp, b), a)[..., None, :, :]
     m, g = match_rank(xp, m, group)
     d = _matrix_geodesic_distance(xp, m, g)
+    return _nearest(xp, d)
+
+
+def _nearest(xp: Any, d: Any) -> Any:
+    """The distance ``(...)`` to the chosen symmetry of the distances ``d`` ``(..., G)``."""
     # Ties within 4 ulps (the rounding of one distance: exact ties come out so) go to the first g, so
     # that one choice holds on every backend and path, whichever order its arithmetic rounds in.
     return xp.sum(xp.where(_first_minimum(xp, d, 4.0), d, 0.0), axis=-1)
+
+
+def _one_zero() -> tuple[Any, ...]:
+    # 1 and 0 as arrays: a Python number in a ``where`` is an operation of its own in eager torch
+    return 1.0, 0.0
+
+
+@eager_form(of=symmetric_geodesic_distance)
+def symmetric_geodesic_distance_eager(xp: Any, matrix1: Any, matrix2: Any, group: Any) -> Any:
+    """:func:`symmetric_geodesic_distance`, eager form: the same relative rotation, then the distance
+    to every ``g`` in a few vectorised operations and the same choice of ``g``.
+
+    The distances decide the choice, so they are formed as the componentwise form forms them, without
+    a BLAS product: ``M = m^T g`` entry by entry as three products summed over ``k`` in order (a
+    reduction, not a ``matmul``, whose blocking differs between layouts), the axial part as
+    differences of two entries (exactly 0 for a symmetric ``M``), the trace as the sum of the
+    diagonal, then ``atan2(|axial|, trace - 1)`` with the componentwise form's double ``where`` on the
+    norm (a zero gradient at the zero axial part)."""
+    if group.shape[-3] == 0:
+        raise ValueError(
+            "symmetric_geodesic_distance: expected a group of at least one rotation, "
+            f"got shape {tuple(group.shape)}"
+        )
+    one, zero = constants(xp, matrix1, _one_zero)
+    a, b = match_rank(xp, matrix1, matrix2)
+    m = xp.matmul(_transpose(xp, b), a)[..., None, :, :]
+    m, g = match_rank(xp, m, group)
+    full = (m[..., :, :, None] * g[..., :, None, :]).sum(-3)
+    # the entries (2, 1), (0, 2), (1, 0) of M - M^T (row-major 7, 2, 3), in the componentwise order
+    flat = (full - full.mT).flatten(-2)
+    skew = xp.cat([flat[..., 7:8], flat[..., 2:4]], -1)
+    s2 = (skew * skew).sum(-1)
+    cos2 = full.diagonal(0, -2, -1).sum(-1) - 1.0
+    positive = s2 > 0
+    d = xp.atan2(xp.where(positive, xp.sqrt(xp.where(positive, s2, one)), zero), cos2)
+    return _nearest(xp, d)
 
 
 _NAME = re.compile(r"^(?:([CD])([1-9][0-9]*)|([TOI]))$")
