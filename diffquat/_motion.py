@@ -30,6 +30,7 @@ finite gradient, as ``so3_log`` does.
 
 from __future__ import annotations
 
+import functools
 import math
 import numbers
 from collections.abc import Callable
@@ -40,12 +41,15 @@ from ._algebra import (
     _hamilton_forms,
     _log_eager,
     axis_angle_to_matrix,
+    axis_angle_to_matrix_eager,
     hamilton,
     match_rank,
     matrix_to_axis_angle,
+    matrix_to_axis_angle_eager,
     quaternion_invert,
     quaternion_invert_eager,
     quaternion_slerp,
+    quaternion_slerp_eager,
 )
 from ._core import (
     Conversion,
@@ -61,8 +65,25 @@ from ._core import (
     wxyz_to_xyzw,
     xyzw_to_wxyz,
 )
-from ._lie import _join, _product, _unit, quaternion_minus, quaternion_plus, quaternion_plus_eager
-from ._se3 import _bottom_row, _with_bottom, se3_compose, se3_exp, se3_minus
+from ._lie import (
+    _join,
+    _product,
+    _unit,
+    quaternion_minus,
+    quaternion_minus_eager,
+    quaternion_plus,
+    quaternion_plus_eager,
+)
+from ._se3 import (
+    _bottom_row,
+    _with_bottom,
+    se3_compose,
+    se3_compose_eager,
+    se3_exp,
+    se3_exp_eager,
+    se3_minus,
+    se3_minus_eager,
+)
 
 FRAMES = ("body", "space")
 
@@ -356,6 +377,17 @@ def quaternion_squad(xp: Any, q: Any, t: Any, *, scalar_first: bool = True) -> A
         Unit quaternions, shape ``(..., 4)``; at ``t = k`` the knot ``q_k``, normalised, with the sign
         made consistent with ``q_0``.
     """
+    return _squad(xp, q, t, scalar_first, eager=False)
+
+
+def _squad(xp: Any, q: Any, t: Any, scalar_first: bool, *, eager: bool) -> Any:
+    """``quaternion_squad``, its pieces (``quaternion_minus``, ``quaternion_plus``, ``quaternion_slerp``)
+    componentwise or, ``eager``, their eager forms (the same values and choices)."""
+    minus, plus, slerp = (
+        (quaternion_minus_eager, quaternion_plus_eager, quaternion_slerp_eager)
+        if eager
+        else (quaternion_minus, quaternion_plus, quaternion_slerp)
+    )
     count = q.shape[-2]
     if count < 2:
         raise ValueError(f"quaternion_squad: expected at least 2 knots, got q of shape {tuple(q.shape)}")
@@ -367,16 +399,16 @@ def quaternion_squad(xp: Any, q: Any, t: Any, *, scalar_first: bool = True) -> A
     parity = xp.cumprod(xp.where(dots < 0.0, -one, one), axis=-1)  # constants: no derivative
     q = q * xp.concat([one[..., :1], parity], axis=-1)[..., None]
     # d_k = log(q_k^-1 q_k+1), k = 0 .. K-2; inner control k: q_k exp((d_k-1 - d_k) / 4)
-    d = quaternion_minus(xp, q[..., 1:, :], q[..., :-1, :])
+    d = minus(xp, q[..., 1:, :], q[..., :-1, :])
     zero = xp.zeros_like(d[..., :1, :])
     correction = xp.concat([zero, 0.25 * (d[..., :-1, :] - d[..., 1:, :]), zero], axis=-2)
-    s = quaternion_plus(xp, q, correction)
+    s = plus(xp, q, correction)
     i, h = _segment(xp, t, count - 1)
     pair = _consecutive(xp, i, 2)
     knots, controls = _gather(xp, q, pair, 1), _gather(xp, s, pair, 1)
-    outer = quaternion_slerp(xp, knots[..., 0, :], knots[..., 1, :], h)
-    inner = quaternion_slerp(xp, controls[..., 0, :], controls[..., 1, :], h)
-    out = quaternion_slerp(xp, outer, inner, 2.0 * h * (1.0 - h))
+    outer = slerp(xp, knots[..., 0, :], knots[..., 1, :], h)
+    inner = slerp(xp, controls[..., 0, :], controls[..., 1, :], h)
+    out = slerp(xp, outer, inner, 2.0 * h * (1.0 - h))
     return out if scalar_first else wxyz_to_xyzw(xp, out)
 
 
@@ -487,6 +519,64 @@ def _recursion(
     return value, rate, accel
 
 
+@functools.cache
+def _basis_forms(order: int) -> Callable[[], tuple[Any, ...]]:
+    """The maker (for ``_core.constants``, one per order) of the coefficients of the cumulative basis
+    and of its two derivatives, ``(order, 3 (order - 1))``: row ``n`` the coefficients of ``s^n`` of
+    ``lambda_1 .. lambda_k-1``, then of their first and of their second derivatives."""
+    polys = []
+    for part in range(3):
+        for row in _cumulative_basis(order)[1:]:
+            for _ in range(part):
+                row = [n * c for n, c in enumerate(row)][1:]
+            polys.append([float(c) for c in row] + [0.0] * (order - len(row)))
+
+    def make() -> tuple[Any, ...]:
+        return tuple([p[n] for p in polys] for n in range(order))
+
+    return make
+
+
+def _basis_eager(xp: Any, s: Any, order: int) -> Any:
+    """:func:`_basis`, eager form: ``lambda_1 .. lambda_k-1``, their first and their second derivatives
+    at the fractions ``s`` ``(S...)``, side by side ``(S..., 3 (order - 1))``, by one Horner evaluation
+    of all of them (the same operations on each polynomial as :func:`_polynomial`; the lower degrees'
+    zero leading coefficients add exact zeros)."""
+    forms = constants(xp, s, _basis_forms(order))
+    x = s[..., None]
+    out = x * forms[-1] + forms[-2]
+    for c in forms[-3::-1]:
+        out = out * x + c
+    return out
+
+
+def _recursion_eager(
+    xp: Any,
+    first: Any,
+    d: Any,
+    basis: Any,
+    *,
+    exp: Callable[[Any], Any],
+    compose: Callable[[Any, Any], Any],
+    transport: Callable[[Any, Any], Any],
+    bracket: Callable[[Any, Any], Any],
+) -> tuple[Any, Any, Any]:
+    """:func:`_recursion`, eager form, with the basis of :func:`_basis_eager` ``(S..., 3 (order - 1))``:
+    the same steps, with every ``lambda_j d_j`` and its derivatives' terms formed by one product and
+    every exponential by one call (the steps stacked on the axis of ``d``)."""
+    count = d.shape[-2]
+    lam, dj = match_rank(xp, basis.unflatten(-1, (3, count))[..., None], d[..., None, :, :])
+    terms = (lam * dj).unbind(-3)  # each (N..., order - 1, m)
+    steps = exp(terms[0]).unbind(-3)
+    rates, accels = terms[1].unbind(-2), terms[2].unbind(-2)
+    value, rate, accel = compose(first, steps[0]), rates[0], accels[0]
+    for j in range(1, count):
+        value = compose(value, steps[j])
+        rate = transport(steps[j], rate) + rates[j]
+        accel = transport(steps[j], accel) + accels[j] + bracket(rate, rates[j])
+    return value, rate, accel
+
+
 _SPLINE_DOC = """
     The spline (Kim, Kim and Shin, "A general construction scheme for unit quaternion curves with
     simple high order derivatives", SIGGRAPH 1995; Sommer, Usenko, Schubert, Demmel and Cremers,
@@ -545,34 +635,43 @@ def so3_bspline(
     """
     count = _check_spline("so3_bspline", tuple(control.shape), 2, order)
     i, s = _segment(xp, u, count - order + 1)
-    return _so3_bspline_at(xp, control, i, _basis(xp, s, order), to_matrix, to_quaternion)
+    return _so3_bspline_at(xp, control, i, s, order, to_matrix, to_quaternion, eager=False)
 
 
 def _so3_bspline_at(
     xp: Any,
     control: Any,
     i: Any,
-    basis: list[tuple[Any, Any, Any]],
+    s: Any,
+    order: int,
     to_matrix: Conversion,
     to_quaternion: Conversion,
+    *,
+    eager: bool,
 ) -> tuple[Any, Any, Any]:
-    """``so3_bspline`` on the segments ``i`` with the basis at their fractions (``_segment``,
-    ``_basis``), which the split SE(3) spline shares."""
-    order = len(basis) + 1
+    """``so3_bspline`` on the segments ``i`` at the fractions ``s`` (``_segment``), which the split
+    SE(3) spline shares; ``eager``: with the eager forms of the logarithm and the exponential and
+    :func:`_recursion_eager` (the same values, to rounding, and the same choices)."""
+    log, exp = (
+        (matrix_to_axis_angle_eager, axis_angle_to_matrix_eager)
+        if eager
+        else (matrix_to_axis_angle, axis_angle_to_matrix)
+    )
     relative = small_matmul(xp, xp.swapaxes(control[..., :-1, :, :], -1, -2), control[..., 1:, :, :])
-    increments = matrix_to_axis_angle(xp, relative, to_quaternion=to_quaternion)  # (B..., K - 1, 3)
+    increments = log(xp, relative, to_quaternion=to_quaternion)  # (B..., K - 1, 3)
     rotation = _gather(xp, control, i[..., None], 2)[..., 0, :, :]
     d = _gather(xp, increments, _consecutive(xp, i, order - 1), 1)
 
     def transport(step: Any, v: Any) -> Any:  # Ad(A^-1) on SO(3): A^T
         return xp.matmul(xp.swapaxes(step, -1, -2), v[..., None])[..., 0]
 
-    return _recursion(
+    recursion = _recursion_eager if eager else _recursion
+    return recursion(
         xp,
         rotation,
         d,
-        basis,
-        exp=lambda v: axis_angle_to_matrix(xp, v, to_matrix=to_matrix),
+        _basis_eager(xp, s, order) if eager else _basis(xp, s, order),
+        exp=lambda v: exp(xp, v, to_matrix=to_matrix),
         compose=lambda a, b: small_matmul(xp, *match_rank(xp, a, b)),
         transport=transport,
         bracket=xp.linalg.cross,
@@ -617,12 +716,31 @@ def se3_bspline(
         its derivative in ``u``, shape ``(..., 6)``. The position's derivative in the world is
         ``R v``; in the split form its second derivative is ``R (v' + w_b x v)``.
     """
+    return _se3_bspline(xp, control, u, order, mode, to_matrix, to_quaternion, eager=False)
+
+
+def _se3_bspline(
+    xp: Any,
+    control: Any,
+    u: Any,
+    order: int,
+    mode: str,
+    to_matrix: Conversion,
+    to_quaternion: Conversion,
+    *,
+    eager: bool,
+) -> tuple[Any, Any, Any]:
+    """``se3_bspline``; ``eager``: with the eager forms of its pieces (``se3_minus``, ``se3_exp``,
+    ``se3_compose``, the split form's ``so3_bspline`` pieces), the same values and choices."""
     if mode not in SPLINE_MODES:
         raise ValueError(f"se3_bspline: expected mode to be 'se3' or 'split', got {mode!r}")
     count = _check_spline("se3_bspline", tuple(control.shape), 2, order)
     if mode == "split":
-        return _split_bspline(xp, control, u, order, count, to_matrix, to_quaternion)
-    increments = se3_minus(xp, control[..., 1:, :, :], control[..., :-1, :, :], to_quaternion=to_quaternion)
+        return _split_bspline(xp, control, u, order, count, to_matrix, to_quaternion, eager=eager)
+    minus, exp, compose = (
+        (se3_minus_eager, se3_exp_eager, se3_compose_eager) if eager else (se3_minus, se3_exp, se3_compose)
+    )
+    increments = minus(xp, control[..., 1:, :, :], control[..., :-1, :, :], to_quaternion=to_quaternion)
     i, s = _segment(xp, u, count - order + 1)
     pose = _gather(xp, control, i[..., None], 2)[..., 0, :, :]
     d = _gather(xp, increments, _consecutive(xp, i, order - 1), 1)
@@ -643,13 +761,14 @@ def se3_bspline(
         rho_a, phi_a, rho_b, phi_b = a[..., :3], a[..., 3:], b[..., :3], b[..., 3:]
         return xp.concat([cross(phi_a, rho_b) + cross(rho_a, phi_b), cross(phi_a, phi_b)], axis=-1)
 
-    return _recursion(
+    recursion = _recursion_eager if eager else _recursion
+    return recursion(
         xp,
         pose,
         d,
-        _basis(xp, s, order),
-        exp=lambda v: se3_exp(xp, v, to_matrix=to_matrix),
-        compose=lambda a, b: se3_compose(xp, a, b),
+        _basis_eager(xp, s, order) if eager else _basis(xp, s, order),
+        exp=lambda v: exp(xp, v, to_matrix=to_matrix),
+        compose=lambda a, b: compose(xp, a, b),
         transport=transport,
         bracket=bracket,
     )
@@ -664,21 +783,37 @@ def _sum_terms(terms: list[Any]) -> Any:
 
 
 def _split_bspline(
-    xp: Any, control: Any, u: Any, order: int, count: int, to_matrix: Conversion, to_quaternion: Conversion
+    xp: Any,
+    control: Any,
+    u: Any,
+    order: int,
+    count: int,
+    to_matrix: Conversion,
+    to_quaternion: Conversion,
+    *,
+    eager: bool,
 ) -> tuple[Any, Any, Any]:
     """``se3_bspline``'s ``mode="split"``: the rotation, ``w_b`` and ``w_b'`` of ``so3_bspline``, and
     the position ``p = p_i + sum_j lambda_j (p_i+j - p_i+j-1)`` with its derivatives in ``u``, as the
     body twist ``(R^T p', w_b)`` and its derivative ``(R^T p'' - w_b x R^T p', w_b')`` (``R'^T = -hat(w_b)
     R^T``)."""
     i, s = _segment(xp, u, count - order + 1)
-    basis = _basis(xp, s, order)
-    rotation, omega, omega_dot = _so3_bspline_at(xp, control[..., :3, :3], i, basis, to_matrix, to_quaternion)
+    rotation, omega, omega_dot = _so3_bspline_at(
+        xp, control[..., :3, :3], i, s, order, to_matrix, to_quaternion, eager=eager
+    )
     points = control[..., :3, 3]  # (B..., K, 3)
     first = _gather(xp, points, i[..., None], 1)[..., 0, :]
     steps = _gather(xp, points[..., 1:, :] - points[..., :-1, :], _consecutive(xp, i, order - 1), 1)
-    terms = [[_scaled(xp, f, steps[..., j, :]) for f in fs] for j, fs in enumerate(basis)]
-    position = first + _sum_terms([t[0] for t in terms])
-    velocity, accel = _sum_terms([t[1] for t in terms]), _sum_terms([t[2] for t in terms])
+    if eager:
+        # the three sums of lambda_j (and its derivatives) times the steps as one product (S..., 3,
+        # order - 1) @ (N..., order - 1, 3): values only, no choice rides on its rounding
+        lam = _basis_eager(xp, s, order).unflatten(-1, (3, order - 1))
+        sums = xp.matmul(*match_rank(xp, lam, steps))
+        position, velocity, accel = first + sums[..., 0, :], sums[..., 1, :], sums[..., 2, :]
+    else:
+        terms = [[_scaled(xp, f, steps[..., j, :]) for f in fs] for j, fs in enumerate(_basis(xp, s, order))]
+        position = first + _sum_terms([t[0] for t in terms])
+        velocity, accel = _sum_terms([t[1] for t in terms]), _sum_terms([t[2] for t in terms])
     r_t = xp.swapaxes(rotation, -1, -2)
     v = xp.matmul(r_t, velocity[..., None])[..., 0]
     v_dot = xp.matmul(r_t, accel[..., None])[..., 0] - xp.linalg.cross(omega, v)
@@ -877,3 +1012,54 @@ def angular_velocity_from_quaternions_eager(
     log = _log_eager(xp, _join(xp, *relative, True))[0]
     log, step = match_rank(xp, log, dt[..., None, None])
     return log / step
+
+
+# ---------------------------------------------------------------------------------------------------
+# Eager forms of SQUAD and the splines: the same compositions with the eager forms of their pieces
+# (each gives its componentwise form's values and discrete choices: the knots' signs, the shortest
+# arcs, the pivots of the logarithms), so the composites keep them too.
+
+
+@eager_form(of=quaternion_squad)
+def quaternion_squad_eager(xp: Any, q: Any, t: Any, *, scalar_first: bool = True) -> Any:
+    """:func:`quaternion_squad`, eager form: the same knot signs (from the same dot products), then the
+    eager forms of ``quaternion_minus``, ``quaternion_plus`` and ``quaternion_slerp``."""
+    return _squad(xp, q, t, scalar_first, eager=True)
+
+
+@eager_form(of=bound_so3_bspline)
+def bound_so3_bspline_eager(
+    xp: Any,
+    control: Any,
+    u: Any,
+    *,
+    order: int = 4,
+    to_matrix: Conversion = unit_quaternion_to_matrix,
+    to_quaternion: Conversion = matrix_to_quaternion,
+) -> Any:
+    """:func:`bound_so3_bspline`, eager form: the same increments and recursion, with the eager forms
+    of ``matrix_to_axis_angle`` and ``axis_angle_to_matrix``."""
+    count = _check_spline("so3_bspline", tuple(control.shape), 2, order)
+    i, s = _segment(xp, u, count - order + 1)
+    rotation, omega, omega_dot = _so3_bspline_at(
+        xp, control, i, s, order, to_matrix, to_quaternion, eager=True
+    )
+    return _pack(xp, (rotation, 2), (omega, 1), (omega_dot, 1))
+
+
+@eager_form(of=bound_se3_bspline)
+def bound_se3_bspline_eager(
+    xp: Any,
+    control: Any,
+    u: Any,
+    *,
+    order: int = 4,
+    mode: str = "se3",
+    to_matrix: Conversion = unit_quaternion_to_matrix,
+    to_quaternion: Conversion = matrix_to_quaternion,
+) -> Any:
+    """:func:`bound_se3_bspline`, eager form: the same increments and recursion, with the eager forms
+    of ``se3_minus``, ``se3_exp`` and ``se3_compose`` (``mode="split"``: of ``so3_bspline``'s
+    pieces)."""
+    pose, twist, twist_dot = _se3_bspline(xp, control, u, order, mode, to_matrix, to_quaternion, eager=True)
+    return _pack(xp, (pose[..., :3, :], 2), (twist, 1), (twist_dot, 1))
