@@ -20,6 +20,7 @@ from ._core import (
     constants,
     eager_form,
     join_quaternion,
+    largest_magnitude,
     matrix_to_quaternion,
     nonfinite_by_arithmetic,
     op,
@@ -203,7 +204,7 @@ def quaternion_invert_eager(xp: Any, q: Any, *, scalar_first: bool = True) -> An
         q = xp.roll(q, 1, -1)
     signs, inf = constants(xp, q, _invert_constants)
     tiny = float(xp.finfo(q.dtype).tiny)
-    m = cancelling_factor(xp, xp.linalg.vector_norm(q, float("inf"), -1, True).clamp_min(tiny))
+    m = largest_magnitude(xp, cancelling_factor(xp, q)).clamp_min(tiny)
     u = q / m
     n = xp.linalg.vector_norm(u, 2, -1, True)
     norm = n * m

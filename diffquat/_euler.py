@@ -24,6 +24,7 @@ from ._core import (
     constants,
     eager_form,
     join_quaternion,
+    largest_magnitude,
     nonfinite_by_arithmetic,
     op,
     quaternion_to_matrix,
@@ -633,7 +634,7 @@ def matrix_to_euler_angles_eager(xp: Any, matrix: Any, convention: str, *, degre
         xp, matrix, _m2e_forms(convention, tiny)
     )
     flat = matrix.reshape(-1, 9)
-    big = cancelling_factor(xp, xp.linalg.vector_norm(flat, float("inf"), -1, True))
+    big = largest_magnitude(xp, cancelling_factor(xp, flat))
     # big / mantissa: the power of two above big, exactly (frexp: big = mantissa 2^exponent, mantissa
     # in [1/2, 1)), subnormal ones included. 0 / 0 for the zero matrix, whose scale is 1 (its gradient
     # is not to be multiplied by 1 / tiny), and for a NaN or an infinity, which the product below

@@ -21,6 +21,7 @@ from ._core import (
     constants,
     eager_form,
     join_quaternion,
+    largest_magnitude,
     nonfinite_by_arithmetic,
     op,
     range_divisor,
@@ -157,7 +158,7 @@ def rotation_6d_to_matrix_eager(xp: Any, d6: Any, axis: int) -> tuple[Any, Any]:
     ``a2``'s reaches it too (NONFINITE_BY_ARITHMETIC)."""
     zero_rows, axes = constants(xp, d6, _six_d_constants)
     pair = d6.reshape(*d6.shape[:-1], 2, 3)
-    big = xp.linalg.vector_norm(pair, float("inf"), -1, True)
+    big = largest_magnitude(xp, pair)
     scaled = pair / big
     unit = xp.where(big == 0, zero_rows, scaled / xp.linalg.vector_norm(scaled, 2, -1, True))
     b1, a2 = unit.unbind(-2)
@@ -196,7 +197,7 @@ def rotation_6d_to_matrix_eager_cotangent(
     w21, w31, w32 = (a - a.mT).flatten(-2)[..., [3, 6, 7]].unsqueeze(-1).unbind(-2)
     b1, b2, b3 = basis.unbind(-2)
     pair = d6.reshape(*d6.shape[:-1], 2, 3)
-    big = cancelling_factor(xp, xp.linalg.vector_norm(pair, float("inf"), -1, True))
+    big = largest_magnitude(xp, cancelling_factor(xp, pair))
     big = xp.where(big > 0, big, 1.0)
     s1, s2 = (pair / big).unbind(-2)
     m1, m2 = big.unbind(-2)
