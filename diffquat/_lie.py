@@ -620,11 +620,16 @@ def so3_minus(
         half-turn apart the vector takes the sign of the canonical quaternion (``so3_log``'s rule):
         it jumps there, with a finite gradient.
     """
-    right = check_side("so3_minus", side)
+    relative = _relative_matrix(xp, matrix1, matrix2, check_side("so3_minus", side))
+    return matrix_to_axis_angle(xp, relative, to_quaternion=to_quaternion)
+
+
+def _relative_matrix(xp: Any, matrix1: Any, matrix2: Any, right: bool) -> Any:
+    """``R2^T R1`` (right) or ``R1 R2^T`` (left), batch shapes broadcast: both forms of ``so3_minus``
+    compute it alike, so that a half-turn takes the same sign in each."""
     a, b = match_rank(xp, matrix1, matrix2)
     b_t = xp.swapaxes(b, -1, -2)
-    relative = small_matmul(xp, b_t, a) if right else small_matmul(xp, a, b_t)
-    return matrix_to_axis_angle(xp, relative, to_quaternion=to_quaternion)
+    return small_matmul(xp, b_t, a) if right else small_matmul(xp, a, b_t)
 
 
 def _unit(xp: Any, q: Any, scalar_first: bool) -> tuple[Any, Any]:
@@ -712,13 +717,20 @@ def quaternion_minus(xp: Any, q1: Any, q2: Any, *, side: str = "right", scalar_f
         canonical quaternion (``quaternion_to_axis_angle``'s rule): it jumps there, with a finite
         gradient.
     """
-    right = check_side("quaternion_minus", side)
+    relative = _relative_quaternion(xp, q1, q2, check_side("quaternion_minus", side), scalar_first)
+    return quaternion_to_axis_angle(xp, relative)
+
+
+def _relative_quaternion(xp: Any, q1: Any, q2: Any, right: bool, scalar_first: bool) -> Any:
+    """``q2* q1`` (right) or ``q1 q2*`` (left) of the unit quaternions, scalar first: both forms of
+    ``quaternion_minus`` compute it alike (``_product``'s grouping makes ``q* q``'s vector part exactly
+    zero, and gives a half-turn one sign)."""
     a, b = match_rank(xp, q1, q2)
     p1 = _unit(xp, a, scalar_first)
     w, v = _unit(xp, b, scalar_first)
     inverse = (w, -v)
     relative = _product(inverse, p1, xp) if right else _product(p1, inverse, xp)
-    return quaternion_to_axis_angle(xp, _join(xp, *relative, True))
+    return _join(xp, *relative, True)
 
 
 def _plus_constants() -> tuple[Any, ...]:
@@ -772,10 +784,7 @@ def so3_minus_eager(
     """:func:`so3_minus`, eager form: the same relative rotation (one ``matmul``, as the componentwise
     form computes it in eager torch), then ``matrix_to_axis_angle``'s eager form. Its quaternion's
     pivot is chosen exactly (``_core._m2q_choice``), so both forms give a half-turn the same sign."""
-    right = check_side("so3_minus", side)
-    a, b = match_rank(xp, matrix1, matrix2)
-    b_t = xp.swapaxes(b, -1, -2)
-    relative = small_matmul(xp, b_t, a) if right else small_matmul(xp, a, b_t)
+    relative = _relative_matrix(xp, matrix1, matrix2, check_side("so3_minus", side))
     return matrix_to_axis_angle_eager(xp, relative, to_quaternion=to_quaternion)
 
 
@@ -786,10 +795,5 @@ def quaternion_minus_eager(
     """:func:`quaternion_minus`, eager form: the same unit quaternions and relative rotation (their
     grouping makes ``q* q``'s vector part exactly zero, and a half-turn's sign the componentwise
     form's), then ``quaternion_to_axis_angle``'s eager form (:func:`_log_eager`)."""
-    right = check_side("quaternion_minus", side)
-    a, b = match_rank(xp, q1, q2)
-    p1 = _unit(xp, a, scalar_first)
-    w, v = _unit(xp, b, scalar_first)
-    inverse = (w, -v)
-    relative = _product(inverse, p1, xp) if right else _product(p1, inverse, xp)
-    return _log_eager(xp, _join(xp, *relative, True))[0]
+    relative = _relative_quaternion(xp, q1, q2, check_side("quaternion_minus", side), scalar_first)
+    return _log_eager(xp, relative)[0]
