@@ -373,8 +373,8 @@ def matrix_to_quaternion(xp: Any, matrix: Any, *, scalar_first: bool = True) -> 
     matrix (sums of four quarters cannot overflow) and divided by its largest component before its
     norm is taken (squares of components above ~1.8e19 overflow float32).
     """
-    _, candidates = _m2q_candidates(_quarter(xp, matrix), 0.25)
-    return join_quaternion(xp, *_m2q_unit(xp, *_m2q_select(xp, matrix, candidates)), scalar_first)
+    pivots, candidates = _m2q_candidates(_quarter(xp, matrix), 0.25)
+    return join_quaternion(xp, *_m2q_unit(xp, *_m2q_select(xp, pivots, candidates)), scalar_first)
 
 
 def _quarter(xp: Any, matrix: Any) -> Any:
@@ -424,30 +424,21 @@ def _m2q_candidates(matrix: Any, one: Any) -> tuple[tuple[Any, ...], list[tuple[
     return (t0, t1, t2, t3), candidates
 
 
-def _m2q_choice(xp: Any, matrix: Any) -> tuple[Any, Any, Any]:
+def _m2q_choice(xp: Any, pivots: tuple[Any, ...]) -> tuple[Any, Any, Any]:
     """The largest pivot as a two-level choice: between pivots (0, 1) and (2, 3), then within the
-    pair; ties go to the lower index.
-
-    Decided in exact arithmetic from the diagonal ``d``: each difference of two pivots is twice a sum or
-    difference of two diagonal entries (``t0 - t1 = 2 (d1 + d2)``, ``t2 - t3 = 2 (d1 - d2)``, ...), and
-    the sign of a rounded sum of two numbers is the sign of the exact sum (overflow keeps it too). So
-    every path, however it rounds or orders the four-term pivots themselves (a fused loop, a BLAS
-    product laid out per ``vmap``), makes the same choice, ties included: the half-turns about a
-    diagonal tie three pivots exactly."""
-    d0, d1, d2 = matrix[..., 0, 0], matrix[..., 1, 1], matrix[..., 2, 2]
-    use0, use2 = d1 + d2 >= 0, d1 >= d2  # t0 >= t1, t2 >= t3
-    # the better of (0, 1) against the better of (2, 3): t0 >= t2, t0 >= t3, t1 >= t2 or t1 >= t3, as
-    # d0 + e >= 0 (a selection of numbers, not of booleans: onnxruntime has no Where on booleans)
-    e = xp.where(use2, xp.where(use0, d2, -d1), xp.where(use0, d1, -d2))
-    return d0 + e >= 0, use0, use2
+    pair; ties go to the lower index. The eager form (:func:`matrix_to_quaternion_eager`) sums the
+    same pivots elementwise in the same order and takes their ``argmax``: the same choice, to the bit,
+    at every tie."""
+    t0, t1, t2, t3 = pivots
+    return xp.maximum(t0, t1) >= xp.maximum(t2, t3), t0 >= t1, t2 >= t3
 
 
 def _m2q_select(
-    xp: Any, matrix: Any, candidates: list[tuple[Any, Any, Any, Any]]
+    xp: Any, pivots: tuple[Any, ...], candidates: list[tuple[Any, Any, Any, Any]]
 ) -> tuple[Any, Any, Any, Any]:
     """Components (w, x, y, z) of the candidate of the largest pivot. Every candidate is finite, so
     the selection is safe for reverse mode, and it happens before the one division."""
-    use01, use0, use2 = _m2q_choice(xp, matrix)
+    use01, use0, use2 = _m2q_choice(xp, pivots)
 
     def pick(i: int) -> Any:
         return _m2q_pick(xp, use01, use0, use2, *(candidate[i] for candidate in candidates))
@@ -475,7 +466,7 @@ def _m2q_recover_scale(xp: Any, matrix: Any, q: Any) -> tuple[Any, Any, Any, Any
     as the components are, not the maximum of the four: the derivative of a maximum splits between
     tied pivots (half-turns about a diagonal tie three), which made the second derivative wrong there."""
     pivots = _m2q_pivots(matrix, 1.0)
-    use01, use0, use2 = _m2q_choice(xp, matrix)
+    use01, use0, use2 = _m2q_choice(xp, pivots)
     chosen = functools.partial(_m2q_pick, xp, use01, use0, use2)
     return use01, use0, use2, chosen(*split_quaternion(q, True)) / chosen(*pivots)
 
@@ -922,45 +913,34 @@ def _batch_matrix(xp: Any, q: Any, r9: Any) -> Any:
     return r9.view(*q.shape[:-1], 3, 3)
 
 
-# columns of matrix_to_quaternion_eager's product: the pivots, the six off-diagonal sums, the six
-# choice quantities; and the columns of the candidate (w, x, y, z) of pivot k: row k of the symmetric K
-_OFF, _CHOICE = range(4, 10), range(10, 16)
+# columns of matrix_to_quaternion_eager's product: the pivots, then the six off-diagonal sums; and the
+# columns of the candidate (w, x, y, z) of pivot k: row k of the symmetric K
+_OFF = range(4, 10)
 _K_ROWS = ((0, 4, 5, 6), (4, 1, 7, 8), (5, 7, 2, 9), (6, 8, 9, 3))
 
 
 def _m2q_forms() -> tuple[Any, ...]:
-    """The constants of :func:`matrix_to_quaternion_eager`: ``(A, bias, bits, table, signs, At)``.
-    ``A`` (9, 16) maps the row-major entries to a quarter of the pivots (with ``bias``) and of the
-    off-diagonal sums of :func:`_m2q_candidates`, and to the six sums and differences of two diagonal
-    entries whose signs are :func:`_m2q_choice` (coefficients +-1 and 0: one rounding of a two-term
-    sum, whatever order the product sums in). ``table`` (64, 4) maps the choice's six bits (weighed by
-    ``bits``) to the columns of the chosen candidate (w, x, y, z); ``signs`` weighs the candidate's
-    signs so that the first non-zero component decides the canonical sign (8, 4, 2, 1); ``At`` (10, 9)
-    is the transpose of the first ten columns."""
-    a = [[0.0] * 16 for _ in range(9)]
+    """The constants of :func:`matrix_to_quaternion_eager`: ``(A, bias, pivot_signs, rows, signs,
+    At)``. ``A`` (9, 10) maps the row-major entries to a quarter of the pivots (with ``bias``) and of
+    the off-diagonal sums of :func:`_m2q_candidates`; ``pivot_signs`` (4, 3) are the signed quarters of
+    the diagonal in each pivot (:func:`_m2q_pivots`); ``rows`` (4, 4) the columns of the candidate of each
+    pivot (w, x, y, z); ``signs`` weighs the candidate's signs so that the first non-zero component
+    decides the canonical sign (8, 4, 2, 1); ``At`` (10, 9) is the transpose of ``A``."""
+    a = [[0.0] * 10 for _ in range(9)]
     diagonal = (0, 4, 8)
-    for k, signs in enumerate(((1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1))):
+    pivot_signs = [[0.25, 0.25, 0.25], [0.25, -0.25, -0.25], [-0.25, 0.25, -0.25], [-0.25, -0.25, 0.25]]
+    for k, signs in enumerate(pivot_signs):
         for entry, sign in zip(diagonal, signs, strict=True):
-            a[entry][k] = 0.25 * sign
+            a[entry][k] = sign
     # wx = m21 - m12, wy = m02 - m20, wz = m10 - m01, xy = m01 + m10, xz = m02 + m20, yz = m12 + m21
     for column, (i, j, sign) in zip(
         _OFF, ((7, 5, -1), (2, 6, -1), (3, 1, -1), (1, 3, 1), (2, 6, 1), (5, 7, 1)), strict=True
     ):
         a[i][column], a[j][column] = 0.25, 0.25 * sign
-    # d1 + d2, d1 - d2, d0 + d2, d0 + d1, d0 - d1, d0 - d2 (see _m2q_choice)
-    for column, (i, j, sign) in zip(
-        _CHOICE, ((1, 2, 1), (1, 2, -1), (0, 2, 1), (0, 1, 1), (0, 1, -1), (0, 2, -1)), strict=True
-    ):
-        a[diagonal[i]][column], a[diagonal[j]][column] = 1.0, float(sign)
-    table = []
-    for code in range(64):
-        bit = [bool(code >> j & 1) for j in range(6)]
-        use0, use2 = bit[0], bit[1]
-        use01 = (bit[2] if use2 else bit[3]) if use0 else (bit[4] if use2 else bit[5])
-        table.append(list(_K_ROWS[(0 if use0 else 1) if use01 else (2 if use2 else 3)]))
     transposed = [[a[i][j] for i in range(9)] for j in range(10)]
-    bias = [0.25] * 4 + [0.0] * 12
-    return a, bias, [1, 2, 4, 8, 16, 32], table, [[8.0], [4.0], [2.0], [1.0]], transposed
+    bias = [0.25] * 4 + [0.0] * 6
+    rows = [list(row) for row in _K_ROWS]
+    return a, bias, pivot_signs, rows, [[8.0], [4.0], [2.0], [1.0]], transposed
 
 
 def matrix_to_quaternion_eager(xp: Any, m: Any) -> tuple[Any, Any, Any]:
@@ -969,18 +949,21 @@ def matrix_to_quaternion_eager(xp: Any, m: Any) -> tuple[Any, Any, Any]:
     both orders give the same numbers bit for bit), the columns of the chosen candidate and
     ``+-|c|`` ``(B, 1)``, which the rule reuses.
 
-    One ``addmm`` gives a quarter of the four pivots and of the six off-diagonal sums (the candidates'
-    entries, as :func:`_m2q_candidates`) and the six two-entry sums whose signs choose the pivot
-    exactly, as :func:`_m2q_choice` does, so that this form and the componentwise one choose alike at
-    every tie. The choice's bits index a table of the chosen candidate's columns, gathered; the
-    candidate is divided by its largest entry before its norm (no square overflows), and by the norm
-    carrying the canonical sign: the sign of the candidate's signs weighed 8, 4, 2, 1, so that the
-    first non-zero component decides (never 0: the chosen pivot is positive). A NaN or an infinity in
-    the matrix makes every column of the product NaN (``0 * x``), and with them the quaternion."""
-    a, bias, bits, table, signs, _ = constants(xp, m, _m2q_forms)
-    p = xp.addmm(bias, m, a)
-    cols = table[((p[:, 10:] >= 0) * bits).sum(-1)]
-    c = p.gather(1, cols)
+    The pivot is the componentwise form's choice to the bit: its four pivots summed elementwise in its
+    order (``((1 +- d0) +- d1) +- d2``), and ``argmax``, which takes the first of tied maxima as the
+    two-level choice of :func:`_m2q_choice` does. Not from a matrix product: BLAS sums in an order that
+    depends on the batch's layout, so a pivot read from one differed between ``vmap`` and a plain call
+    at exact ties. One ``addmm`` gives a quarter of the pivots and of the six off-diagonal sums (the
+    candidates' entries, as :func:`_m2q_candidates`); the chosen candidate's columns are gathered; it is
+    divided by its largest entry before its norm (no square overflows), and by the norm carrying the
+    canonical sign: the sign of the candidate's signs weighed 8, 4, 2, 1, so that the first non-zero
+    component decides (never 0: the chosen pivot is positive). A NaN or an infinity in the matrix
+    makes every column of the product NaN (``0 * x``), and with them the quaternion."""
+    a, bias, pivot_signs, rows, signs, _ = constants(xp, m, _m2q_forms)
+    # (B, 4, 3): each pivot's signed diagonal entries, quartered as the componentwise form's (exactly)
+    e = m[:, ::4, None].mT * pivot_signs
+    cols = rows[(((0.25 + e[..., 0]) + e[..., 1]) + e[..., 2]).argmax(-1)]
+    c = xp.addmm(bias, m, a).gather(1, cols)
     big = largest_magnitude(xp, c)
     norm = xp.linalg.vector_norm(c / cancelling_factor(xp, big), 2, -1, True)
     den = norm.copysign(c.sign() @ signs) * big
@@ -1013,8 +996,8 @@ def eager_rules(scalar_first: bool) -> dict[str, EagerRule]:
     *aux)``, ``cotangent(xp, u, y, *aux, gy, *gaux)`` and the result ``finish(xp, x, y)`` (a view).
 
     ``matrix_to_quaternion``'s input is the nine entries ``(B, 9)``; its form computes scalar first,
-    and scalar-last storage is reordered after (``roll``). Its choice of pivot is exact
-    (:func:`_m2q_choice`), so the two forms and every layout of a batch choose alike at every tie."""
+    and scalar-last storage is reordered after (``roll``). Its pivots are summed elementwise, in the
+    componentwise order, so every path and every layout of a batch chooses alike at every tie."""
 
     def q2m_prepare(xp: Any, q: Any) -> Any:
         return unit_scale(xp, q if scalar_first else xp.roll(q, 1, -1))

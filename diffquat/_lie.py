@@ -782,8 +782,7 @@ def so3_minus_eager(
     to_quaternion: Conversion = matrix_to_quaternion,
 ) -> Any:
     """:func:`so3_minus`, eager form: the same relative rotation (one ``matmul``, as the componentwise
-    form computes it in eager torch), then ``matrix_to_axis_angle``'s eager form. Its quaternion's
-    pivot is chosen exactly (``_core._m2q_choice``), so both forms give a half-turn the same sign."""
+    form computes it in eager torch), then ``matrix_to_axis_angle``'s eager form."""
     relative = _relative_matrix(xp, matrix1, matrix2, check_side("so3_minus", side))
     return matrix_to_axis_angle_eager(xp, relative, to_quaternion=to_quaternion)
 
