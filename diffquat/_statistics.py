@@ -28,7 +28,7 @@ from __future__ import annotations
 import functools
 import re
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -433,14 +433,27 @@ def karcher_tangent(xp: Any, x: Any, y: Any, dx: Any) -> Any:
     return _tangent_of_rotation(xp, y, _solve3(xp, a, b))
 
 
-def karcher_cotangent(xp: Any, x: Any, y: Any, gy: Any) -> Any:
+class _Pieces(NamedTuple):
+    """The products the means' reverse rules are made of: componentwise (``_COMPONENTWISE``, for the
+    compilers and jax) or vectorised (``_EAGER``, eager torch); every selection is read from the same
+    componentwise quantities either way."""
+
+    cross: Callable[..., Any]
+    rotation_of_cotangent: Callable[..., Any]
+    right_perturbations_transposed: Callable[..., Any]
+    jacobian_inverse: Callable[..., Any]
+    solve3_transposed: Callable[..., Any]
+
+
+def karcher_cotangent(xp: Any, x: Any, y: Any, gy: Any, pieces: _Pieces | None = None) -> Any:
     """Reverse-mode derivative of :func:`karcher_mean`: the transpose of :func:`karcher_tangent`
     (``Jr^-1(v)^T = Jl^-1(v)``)."""
+    p = pieces or _COMPONENTWISE
     u, w, v, c, total, a = _karcher_system(xp, x, y)
-    gb = _solve3_transposed(xp, a, _rotation_of_cotangent(xp, y, gy))[..., None, :]
-    gd = w[..., None] * _jacobian_inverse(xp, v, c, xp.broadcast_to(gb, v.shape), right=False)
+    gb = p.solve3_transposed(xp, a, p.rotation_of_cotangent(xp, y, gy))[..., None, :]
+    gd = w[..., None] * p.jacobian_inverse(xp, v, c, xp.broadcast_to(gb, v.shape), right=False)
     gomega = xp.sum(v * gb, axis=-1, keepdims=True) / total[..., None]
-    return xp.concat([_right_perturbations_transposed(xp, u, gd), gomega], axis=-1)
+    return xp.concat([p.right_perturbations_transposed(xp, u, gd), gomega], axis=-1)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -605,20 +618,26 @@ def median_tangent(xp: Any, x: Any, y: Any, dx: Any) -> Any:
     return _tangent_of_rotation(xp, y, e)
 
 
-def median_cotangent(xp: Any, x: Any, y: Any, gy: Any) -> Any:
+def median_cotangent(xp: Any, x: Any, y: Any, gy: Any, pieces: _Pieces | None = None) -> Any:
     """Reverse-mode derivative of :func:`geodesic_median`: the transpose of :func:`median_tangent`."""
+    p = pieces or _COMPONENTWISE
     u, w, total, at, snapped, weight_at, n, cot, b = _median_system(xp, x, y)
-    ge = _rotation_of_cotangent(xp, y, gy)
-    free = xp.where(snapped[..., None], 0.0, _solve3_transposed(xp, b, ge))[..., None, :]
+    ge = p.rotation_of_cotangent(xp, y, gy)
+    free = xp.where(snapped[..., None], 0.0, p.solve3_transposed(xp, b, ge))[..., None, :]
     gfollow = xp.where(snapped[..., None], ge / weight_at[..., None], 0.0)[..., None, :]
     off = xp.where(at, 0.0, w)[..., None]
     # adjoint of d -> (cot (d - n (n . d)) + n x d) / 2 is g -> (cot (g - n (n . g)) - n x g) / 2
     free = xp.broadcast_to(free, n.shape)
     along = free - n * _dot(xp, n, free)[..., None]
-    gd = off * 0.5 * (cot[..., None] * along - _cross(xp, n, free))
+    gd = off * 0.5 * (cot[..., None] * along - p.cross(xp, n, free))
     gd = gd + xp.where(at, w, 0.0)[..., None] * gfollow
     gomega = xp.sum(n * free, axis=-1, keepdims=True) / total[..., None]
-    return xp.concat([_right_perturbations_transposed(xp, u, gd), gomega], axis=-1)
+    return xp.concat([p.right_perturbations_transposed(xp, u, gd), gomega], axis=-1)
+
+
+_COMPONENTWISE = _Pieces(
+    _cross, _rotation_of_cotangent, _right_perturbations_transposed, _jacobian_inverse, _solve3_transposed
+)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -659,32 +678,23 @@ def _solve3_transposed_eager(xp: Any, a: Any, b: Any) -> Any:
     return xp.matmul(k, b[..., None])[..., 0] / det[..., None]
 
 
+_EAGER = _Pieces(
+    _cross_eager,
+    _rotation_of_cotangent_eager,
+    _right_perturbations_transposed_eager,
+    _jacobian_inverse_eager,
+    _solve3_transposed_eager,
+)
+
+
 def karcher_eager_cotangent(xp: Any, x: Any, y: Any, gy: Any | None) -> Any:
     """:func:`karcher_cotangent`, eager form (torch). None for no cotangent."""
-    if gy is None:
-        return None
-    u, w, v, c, total, a = _karcher_system(xp, x, y)
-    gb = _solve3_transposed_eager(xp, a, _rotation_of_cotangent_eager(xp, y, gy))[..., None, :]
-    gd = w[..., None] * _jacobian_inverse_eager(xp, v, c, xp.broadcast_to(gb, v.shape), right=False)
-    gomega = xp.sum(v * gb, axis=-1, keepdims=True) / total[..., None]
-    return xp.concat([_right_perturbations_transposed_eager(xp, u, gd), gomega], axis=-1)
+    return None if gy is None else karcher_cotangent(xp, x, y, gy, _EAGER)
 
 
 def median_eager_cotangent(xp: Any, x: Any, y: Any, gy: Any | None) -> Any:
     """:func:`median_cotangent`, eager form (torch). None for no cotangent."""
-    if gy is None:
-        return None
-    u, w, total, at, snapped, weight_at, n, cot, b = _median_system(xp, x, y)
-    ge = _rotation_of_cotangent_eager(xp, y, gy)
-    free = xp.where(snapped[..., None], 0.0, _solve3_transposed_eager(xp, b, ge))[..., None, :]
-    gfollow = xp.where(snapped[..., None], ge / weight_at[..., None], 0.0)[..., None, :]
-    off = xp.where(at, 0.0, w)[..., None]
-    free = xp.broadcast_to(free, n.shape)
-    along = free - n * _dot(xp, n, free)[..., None]
-    gd = off * 0.5 * (cot[..., None] * along - _cross_eager(xp, n, free))
-    gd = gd + xp.where(at, w, 0.0)[..., None] * gfollow
-    gomega = xp.sum(n * free, axis=-1, keepdims=True) / total[..., None]
-    return xp.concat([_right_perturbations_transposed_eager(xp, u, gd), gomega], axis=-1)
+    return None if gy is None else median_cotangent(xp, x, y, gy, _EAGER)
 
 
 def _same(xp: Any, x: Any) -> Any:
