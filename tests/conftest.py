@@ -120,9 +120,12 @@ QUICK_IN_SLOW_FILES = {
     "test_merge_lists_only_the_runs_whose_tables_it_shows",
 }
 SLOW_NAMES = re.compile(r"compil|jit|onnx|trace|captur|inductor|xla")
-# long runs, each a program of its own: the soak test of 10^4 optimiser steps (2 to 8 minutes of one
-# worker, the quick tier's largest item)
-SLOW_RUNS = {"test_torch_parameters_stay_rotations_for_ten_thousand_float32_steps"}
+# long runs, each a program of its own: the soak tests of 10^4 optimiser steps (2 to 8 minutes of one
+# worker, the quick tier's largest item; the poses' 40 s, its jax loop compiled)
+SLOW_RUNS = {
+    "test_torch_parameters_stay_rotations_for_ten_thousand_float32_steps",
+    "test_pose_parameters_stay_rigid_for_ten_thousand_float32_steps",
+}
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
