@@ -143,6 +143,57 @@ def test_reduced_precision_products_take_the_componentwise_form() -> None:
         torch.set_float32_matmul_precision(before)
 
 
+@pytest.mark.parametrize(
+    "name, arguments",
+    [
+        ("quaternion_to_matrix", lambda q: (q,)),
+        ("quaternion_multiply", lambda q: (q, q[:, [2, 0, 3, 1]])),
+        ("axis_angle_to_matrix", lambda q: (q[:, 1:] * 3.0,)),
+        ("so3_exp", lambda q: (q[:, 1:] * 3.0,)),
+    ],
+)
+def test_memory_bound_maps_take_the_componentwise_form_from_many_rows_on_the_cpu(
+    name: str, arguments: Any
+) -> None:
+    """On the CPU the outer-product eager forms lose to the componentwise form from a few thousand rows
+    (``_custom.COMPONENTWISE_FROM_ROWS``, docs/performance.md): a call just below the limit dispatches
+    the eager form's product, one at the limit none, and both give the oracle's values (the matrices)
+    or the other form's to a few ulps; a differentiated call returns the plain call's value bit for
+    bit on either side."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    from diffquat.torch import _custom
+
+    class Ops(TorchDispatchMode):
+        def __init__(self) -> None:
+            super().__init__()
+            self.ops: set[str] = set()
+
+        def __torch_dispatch__(self, func: Any, types: Any, args: Any = (), kwargs: Any = None) -> Any:
+            self.ops.add(str(func).split(".")[1])
+            return func(*args, **(kwargs or {}))
+
+    fn = getattr(dq, name)
+    limit = _custom.COMPONENTWISE_FROM_ROWS
+    q = torch.tensor(uniform_quaternions(limit, 5), dtype=torch.float32)
+    outs = []
+    for rows, eager in ((limit - 1, True), (limit, False)):
+        xs = arguments(q[:rows])
+        with Ops() as mode:
+            plain = fn(*xs)
+        assert bool(mode.ops & {"mm", "addmm", "matmul", "bmm"}) == eager, (rows, sorted(mode.ops))
+        differentiated = fn(*(x.clone().requires_grad_(True) for x in xs))
+        assert torch.equal(differentiated.detach(), plain), rows
+        differentiated.sum().backward()
+        outs.append(plain)
+    eps = torch.finfo(torch.float32).eps
+    torch.testing.assert_close(outs[1][: limit - 1], outs[0], rtol=0, atol=8 * eps)
+    if name == "quaternion_to_matrix":
+        expected = torch.tensor(oracle_quaternion_to_matrix(q.double().numpy()), dtype=torch.float32)
+        # entries of size <= 1, each a few rounded products and a normalisation: 8 ulps of 1
+        torch.testing.assert_close(outs[1], expected, rtol=0, atol=8 * eps)
+
+
 # ---------------------------------------------------------------------------------------------------
 # Derivatives that do not depend on the path.
 

@@ -111,6 +111,24 @@ def exact_products(x: Tensor) -> bool:
     return _PRECISION(backend, "matmul") in ("none", "ieee")
 
 
+# On the CPU, the eager forms that contract an outer product with a constant matrix write an (N, 16)
+# product and read it back: from a few thousand rows on, bytes and not dispatches are their cost, and
+# the componentwise form, elementwise over the columns, is faster (crossover between 2048 and 4096
+# rows: docs/performance.md). On other devices launches stay the cost: the eager form at every size.
+# Both forms give the same values to a few ulps and take the same choices.
+COMPONENTWISE_FROM_ROWS = 4096
+_MEMORY_BOUND = {"quaternion_to_matrix", "quaternion_multiply", "axis_angle_to_matrix", "so3_exp"}
+
+
+def few_rows(name: str, x: Tensor) -> bool:
+    """Whether the eager form of the map ``name`` pays on ``x`` (rows: ``x``'s batch elements), as
+    above: the maps in ``_MEMORY_BOUND`` on the CPU below :data:`COMPONENTWISE_FROM_ROWS`, every other
+    map and device always. Reads static sizes only."""
+    if name not in _MEMORY_BOUND or x.device.type != "cpu":
+        return True
+    return x.numel() < COMPONENTWISE_FROM_ROWS * x.shape[-1]
+
+
 def choose(core_fn: Callable[..., Any], x: Tensor) -> Callable[..., Any]:
     """The function a call of the core function ``core_fn`` on ``x`` runs: its eager form where it has
     one (``_core.EAGER_FORMS``) and the call is eager, else ``core_fn`` itself; and ``core_fn`` in
@@ -118,7 +136,7 @@ def choose(core_fn: Callable[..., Any], x: Tensor) -> Callable[..., Any]:
     (:func:`eager_form_with_rule`), which is for reverse mode only: the componentwise form's autodiff
     is exact to every order."""
     name = core_fn.__name__
-    if eager(x) and not (name in _WITH_RULE and forward_ad._current_level >= 0):
+    if eager(x) and few_rows(name, x) and not (name in _WITH_RULE and forward_ad._current_level >= 0):
         return EAGER_FORMS.get(name, core_fn)
     return core_fn
 
@@ -285,6 +303,7 @@ def custom_derivative(
             and chosen != "captured"
             and forward_ad._current_level < 0
             and exact_products(x)
+            and few_rows(forward.__name__, x)
         ):
             prepare, *_, finish = eager
             u = prepare(torch, x)
