@@ -394,7 +394,8 @@ def _jacobian_forms() -> tuple[list[Any], ...]:
     """Constants of :func:`_assemble_eager`: ``A`` (16, 9), row ``4 a + b`` the entries that
     ``v_a v_b`` (``v = (1, w)``) feeds in ``I`` (a = b = 0), ``hat(w)`` (a = 0 < b) and ``w w^T``
     (a, b > 0); and the maps ``E`` of the coefficients to the 16 products: ``(p, q, r)`` (left),
-    ``(p, -q, r)`` (right), ``(p, r)`` with the bias ``-+1/2`` on ``hat(w)`` (left and right inverses)."""
+    ``(p, -q, r)`` (right), ``(p, 4 r)`` with the bias ``-+1/2`` on ``hat(w)`` (left and right
+    inverses: :func:`_inverse_coefficients_eager`'s pair)."""
     a = [[0.0] * 9 for _ in range(16)]
     for k in (0, 4, 8):
         a[0][k] = 1.0
@@ -408,7 +409,7 @@ def _jacobian_forms() -> tuple[list[Any], ...]:
     kind = [0] + [1] * 3 + [1 if b == 0 else 2 for a_ in range(1, 4) for b in range(4)]
     left = [[1.0 if kind[j] == c else 0.0 for j in range(16)] for c in range(3)]
     right = [[(-1.0 if c == 1 else 1.0) if kind[j] == c else 0.0 for j in range(16)] for c in range(3)]
-    inverse = [left[0], left[2]]
+    inverse = [left[0], [0.25 * x for x in left[2]]]
     bias_left = [-0.5 if kind[j] == 1 else 0.0 for j in range(16)]
     bias_right = [0.5 if kind[j] == 1 else 0.0 for j in range(16)]
     return a, left, right, inverse, bias_left, bias_right
@@ -439,18 +440,26 @@ def _jacobian_constants() -> tuple[list[Any], ...]:
 
 
 def _inverse_constants() -> tuple[list[Any], ...]:
-    """The series tables of the inverse's ``(p, r)``."""
-    return _series_tables(_INVERSE_P_SERIES, _C_SERIES)
+    """``(0, 1)`` (``(-p, 1 - p)`` from ``p``), and the series tables of the inverse's ``(p, 4 r)``
+    (:func:`_inverse_coefficients_eager`)."""
+    return [0.0, 1.0], *_series_tables(_INVERSE_P_SERIES, tuple(4.0 * c for c in _C_SERIES))
 
 
-def _series_eager(xp: Any, u: Any, tables: tuple[Any, ...]) -> Any:
+def _series_eager(xp: Any, u: Any, tables: tuple[Any, ...], closed: Any = None, small: Any = None) -> Any:
     """The series of :func:`_series_tables` at ``u`` ``(..., 1)``: ``(..., m)``, the powers ``u^k``
     (one ``pow``) times the table plus the constant terms (one ``addmm``), where Horner's scheme takes
     two operations a term, forward and backward. Below ``SERIES_BELOW`` (``u < 1``) the terms fall,
     so the sum of the products is as accurate as Horner's. No power 0: ``pow``'s derivative in the
     base at ``u = 0`` is 0 by a selection, whose discarded branch ``0 * u^-1`` is NaN in the second
-    derivative."""
+    derivative.
+
+    ``closed``, where given, is the value where ``small`` is false, selected into the constant terms:
+    there ``u`` is 0 (the caller's ``u * small``), its powers are 0, and the sum is ``closed + 0``,
+    exactly ``closed``. So the selection has one cotangent to route, the constant terms needing none:
+    one ``where`` backward, where a selection after the sum routes two."""
     first, powers, table = tables[:3] if u.dtype.itemsize <= 4 else tables[3:]
+    if closed is not None:
+        first = xp.where(small, first, closed)
     if u.ndim == 2:
         return xp.addmm(first, u**powers, table)
     return xp.matmul(u**powers, table) + first
@@ -476,18 +485,27 @@ def _jacobian_coefficients_eager(xp: Any, omega: Any) -> Any:
     # (sin t, 2 sin^2(t/2)) / (t, t^2), and (t - sin t) / t^3 with sin t itself (Sterbenz)
     pq = s * xp.addcmul(num_a, s, num_b) / xp.cat([t, uc], -1)
     closed = xp.cat([pq, (t - s[..., :1]) / (t * uc)], -1)
-    return xp.where(small, _series_eager(xp, us, tuple(tables)), closed)
+    return _series_eager(xp, us, tuple(tables), closed, small)
 
 
 def _inverse_coefficients_eager(xp: Any, omega: Any) -> Any:
-    """:func:`_inverse_coefficients` as one ``(..., 2)`` array ``(p, r)``."""
-    tables = constants(xp, omega, _inverse_constants)
-    small, us, uc, t = _angle_eager(xp, omega)
+    """:func:`_inverse_coefficients` as one ``(..., 2)`` array ``(p, 4 r)`` (the forms ``inverse`` of
+    :func:`_jacobian_forms` take ``r`` back by a quarter, exactly: a power of 2)."""
+    zero_one, *tables = constants(xp, omega, _inverse_constants)
+    u = (omega * omega).sum(-1, keepdim=True)
+    small = u < SERIES_BELOW
+    # The closed forms read (t/2)^2 = u / 4 directly (exact), so that t/2 is one square root, and the
+    # double where by arithmetic with the mask (as _angle_eager): 1 + u / 4 in [1, 1.25) where the
+    # series is chosen, which reads 0 where the closed forms are.
+    quarter = xp.add(small, u, alpha=0.25)
+    half = xp.sqrt(quarter)
     # cos / sin, not 1 / tan: at a half-turn (t/2 = pi/2) tan's derivatives are of size 1e16 and the
     # second derivative of (t/2) / tan(t/2) cancels them to O(1), losing every digit (measured)
-    half = 0.5 * t
     p = half * xp.cos(half) / xp.sin(half)
-    return xp.where(small, _series_eager(xp, us, tables), xp.cat([p, (1.0 - p) / uc], -1))
+    # (p, 4 r) = (0 - p, 1 - p) / (-1, (t/2)^2): one division of two columns, whose backward takes
+    # fewer operations than a division, a subtraction and a concatenation (0 - p, -p / -1 exact)
+    pair = (zero_one - p) / xp.nn.functional.pad(quarter, (1, 0), value=-1.0)
+    return _series_eager(xp, u * small, tuple(tables), pair, small)
 
 
 def _assemble_eager(xp: Any, omega: Any, coefficients: Any, forms: Any, bias: Any = None) -> Any:

@@ -36,9 +36,11 @@ import math
 from collections.abc import Callable
 from typing import Any
 
-from ._algebra import axis_angle_to_matrix, axis_angle_to_matrix_eager, match_rank, matrix_to_axis_angle
+from ._algebra import axis_angle_to_matrix, match_rank, matrix_to_axis_angle
 from ._core import (
+    NONFINITE_BY_ARITHMETIC,
     Conversion,
+    _quadratic_forms,
     cancelling_factor,
     computed_once,
     constants,
@@ -1291,10 +1293,6 @@ def _perpendicular(xp: Any, a: Any) -> Any:
     return f / xp.sqrt(xp.sum(f * f, axis=-1, keepdims=True))
 
 
-def _by_largest(xp: Any, v: Any) -> Any:
-    return v / range_divisor(xp, xp.amax(xp.abs(v), axis=-1, keepdims=True))
-
-
 @op(a=(3,), b=(3,))
 def rotation_between_vectors(
     xp: Any, a: Any, b: Any, *, to_matrix: Conversion = unit_quaternion_to_matrix
@@ -1321,25 +1319,45 @@ def rotation_between_vectors(
     return axis_angle_to_matrix(xp, _rotation_vector_between(xp, a, b), to_matrix=to_matrix)
 
 
-def _rotation_vector_between(xp: Any, a: Any, b: Any) -> Any:
-    """The rotation vector ``(..., 3)`` of :func:`rotation_between_vectors`, its conventions."""
+def _between_axis(xp: Any, a: Any, b: Any, one: Any) -> tuple[Any, ...]:
+    """What both forms of :func:`rotation_between_vectors` read, computed alike, so that they choose
+    the half-turn at the same inputs to the bit: ``(a, c, |a|^2, d, |c|^2, d^2, antiparallel)`` with
+    ``a`` as scaled, ``c`` the axis and ``d = a . b``, the last five of shape ``(..., 1)``. ``one`` is 1: an
+    array in eager torch, where a Python number in ``where`` is an operation of its own."""
     a, b = match_rank(xp, a, b)
-    # each divided by its largest component: the result is scale invariant, and no product over- or
-    # underflows (a constant of differentiation: it cancels)
-    a, b = _by_largest(xp, a), _by_largest(xp, b)
+    # each divided by its largest component / 16 (range_divisor's rule): the result is scale
+    # invariant, and no product over- or underflows (a constant of differentiation: it cancels)
+    a, b = (
+        v / cancelling_factor(xp, xp.where(m > 0, m, one))
+        for v, m in ((a, _sixteenth(xp, a)), (b, _sixteenth(xp, b)))
+    )
     c = _cross(xp, a, b)
     # The axis must be orthogonal to a to the last bit: the rounding of a x b (eps |a| |b| in any
     # direction; an FMA leaves it along a even for exactly antiparallel input) would otherwise move a
     # by eps / sin(angle) near antiparallel vectors. a x b is orthogonal to a, so removing its
     # component along a changes neither the value nor the derivative; |a|^2 is 0 or in [256, 768].
     na = _dot(xp, a, a)
-    c = c - (_dot(xp, c, a) / xp.where(na > 0, na, 1.0)) * a
-    d = xp.sum(a * b, axis=-1)
-    u = xp.sum(c * c, axis=-1)
+    c = c - (_dot(xp, c, a) / xp.where(na > 0, na, one)) * a
+    d = _dot(xp, a, b)
+    u = _dot(xp, c, c)
     # Antiparallel to within 4 ulp (tan(gap)^2 <= (4 eps)^2: the cross product is then rounding, and
     # its direction the arithmetic's choice): the documented half-turn, which maps a's direction onto
     # b's to within the gap, the same on every backend.
-    antiparallel = (d < 0) & (u <= (16.0 * xp.finfo(d.dtype).eps ** 2) * (d * d))
+    dd = d * d
+    antiparallel = (d < 0) & (u <= (16.0 * xp.finfo(d.dtype).eps ** 2) * dd)
+    return a, c, na, d, u, dd, antiparallel
+
+
+def _sixteenth(xp: Any, v: Any) -> Any:
+    """``range_divisor``'s divisor of ``v`` ``(..., 3)`` before its fallback for 0: the largest
+    absolute component / 16, shape ``(..., 1)``."""
+    return xp.amax(xp.abs(v), axis=-1, keepdims=True) * 0.0625
+
+
+def _rotation_vector_between(xp: Any, a: Any, b: Any) -> Any:
+    """The rotation vector ``(..., 3)`` of :func:`rotation_between_vectors`, its conventions."""
+    a, c, _, d, u, _, antiparallel = _between_axis(xp, a, b, 1.0)
+    d, u, antiparallel = d[..., 0], u[..., 0], antiparallel[..., 0]
     # rotation vector = (atan2(s, d) / s) c with s = |c| (no sqrt at 0: double where)
     series = (d > 0) & (u < _ATAN_SERIES_BELOW * (d * d))
     d_s = xp.where(series, d, 1.0)
@@ -1359,13 +1377,51 @@ def _rotation_vector_between(xp: Any, a: Any, b: Any) -> Any:
     return rotvec
 
 
+def _between_constants() -> tuple[Any, ...]:
+    # 1 (the divisors' fallback, the zero vectors' r), 0 (the half-turn's w), the axes' indices, and
+    # the (16, 10) quadratic forms of the nine entries and the squared norm
+    return 1.0, 0.0, [0, 1, 2], _quadratic_forms()
+
+
+# The eager form's own name: its arithmetic makes every entry of a non-finite row NaN (the Backend
+# reads the name of the function it runs), where the componentwise form leaves that to the backend.
+NONFINITE_BY_ARITHMETIC.add("rotation_between_vectors_eager")
+
+
 @eager_form(of=rotation_between_vectors)
 def rotation_between_vectors_eager(
     xp: Any, a: Any, b: Any, *, to_matrix: Conversion = unit_quaternion_to_matrix
 ) -> Any:
-    """:func:`rotation_between_vectors`, eager form: the same rotation vector (its selections are
-    the componentwise form's), then ``axis_angle_to_matrix``'s eager form."""
-    return axis_angle_to_matrix_eager(xp, _rotation_vector_between(xp, a, b), to_matrix=to_matrix)
+    """:func:`rotation_between_vectors`, eager form: the same rotation, through its quaternion without
+    an angle. With ``c`` the axis and ``d = a . b`` (the componentwise form's, bit for bit, so that
+    the half-turn is chosen at the same inputs), ``s = |c|`` and ``r = sqrt(s^2 + d^2)`` (``|a| |b|``),
+    the quaternion is ``(cos(t/2), sin(t/2) c / s)`` with ``tan(t/2) = s / (r + d) = (r - d) / s``, so
+    proportional to ``(r + d, c)``, or to ``(s^2 / (r - d), c)``: the first for ``d >= 0`` and the
+    second for ``d < 0`` add two numbers of one sign, nothing cancels at any angle. The matrix is the
+    quadratic forms of that quaternion over its squared norm (one product with constant
+    coefficients, the norm its tenth column), which is blind to its scale. Every operation is
+    smooth where it is used (``r >= |d| > 0`` and ``s^2 > 0`` wherever a branch divides by them), so
+    autodiff of it is the derivative, parallel vectors included, where the componentwise form needs
+    a series. Zero vectors: ``r`` is taken as 1 and ``c`` as 0, the quaternion is ``(1, 0, 0, 0)``,
+    the identity to the bit, with a zero gradient. A NaN or an infinity makes the whole row NaN
+    through the scaling (``inf / inf``) and every product (NONFINITE_BY_ARITHMETIC)."""
+    one, zero, indices, forms = constants(xp, a, _between_constants)
+    a, c, na, d, u, dd, antiparallel = _between_axis(xp, a, b, one)
+    rr = u + dd
+    nonzero = rr > 0
+    t = xp.sqrt(xp.where(nonzero, rr, one)) + d.abs()
+    w = xp.where(antiparallel, zero, xp.where(d >= 0, t, u / t))
+    # the documented half-turn: its quaternion (0, f), f the part of the least aligned axis e
+    # orthogonal to a (unnormalised: the matrix is blind to the quaternion's scale); a zero vector's
+    # c (0) selected, so that its gradient is zero as the componentwise form's (c = a x b reads b).
+    # e as a mask (argmin: the first of tied minima), not an indexed row of the identity, which
+    # vmap of forward mode (jacfwd) refuses as data-dependent.
+    e = a.abs().argmin(-1, keepdim=True) == indices
+    v = xp.where(antiparallel, e * na - _dot(xp, a, e) * a, xp.where(nonzero, c, zero))
+    q = xp.cat([w, v], -1)
+    p = (q[..., :, None] * q[..., None, :]).flatten(-2) @ forms
+    m, n = p.split([9, 1], -1)
+    return (m / n).unflatten(-1, (3, 3))
 
 
 @op(x1=(3,), x2=(3,), x3=(3,))
