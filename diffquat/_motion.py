@@ -39,7 +39,6 @@ from typing import Any
 
 from ._algebra import (
     _hamilton_forms,
-    _log_eager,
     axis_angle_to_matrix,
     axis_angle_to_matrix_eager,
     hamilton,
@@ -1102,22 +1101,89 @@ def integrate_eager_with(exp: Callable[[Any], tuple[Any, ...]]) -> Callable[...,
     return integrate_angular_velocity_eager
 
 
-@eager_form(of=bound_angular_velocity_from_quaternions)
-def angular_velocity_from_quaternions_eager(
-    xp: Any, q: Any, dt: Any, *, frame: str = "body", scalar_first: bool = True
+def _log_of_relative_constants() -> tuple[Any, ...]:
+    # the weights of the canonical sign (_algebra._log_eager's), 1, the series' 1/6 and 4/3
+    return [[8.0], [4.0], [2.0], [1.0]], 1.0, 1 / 6, 4 / 3
+
+
+def log_of_relative(xp: Any, r: Any) -> tuple[Any, ...]:
+    """The rotation vector (``quaternion_to_axis_angle``) of the relative rotations ``r`` ``(..., 4)``
+    (scalar first) of :func:`angular_velocity_from_quaternions`, eager form, for a rule of its own
+    (:func:`log_of_relative_cotangent`): ``_algebra._log_eager``'s canonical sign and factor ``g =
+    2 atan2(s, w) / s`` (its series ``2 (1 + u / 6 + 3 u^2 / 40)`` in ``u = s^2`` below the threshold),
+    with no guard for autodiff's sake, and no zero rule or division by the norm: ``r`` is a product of
+    two unit quaternions (its norm 1 to rounding, which changes the vector by as much).
+
+    Returns ``(phi, w, v, g, u, small, sign)``: ``phi = g v`` ``(..., 3)``, the canonical ``sign r =
+    (w, v)``, ``g``, ``u = |v|^2``, ``u`` below the threshold, and ``sign`` (``(..., 1)`` each): what
+    the rule reads."""
+    weights, one, sixth, _ = constants(xp, r, _log_of_relative_constants)
+    # the first non-zero component's sign (each weight exceeds the sum of those after it): exact
+    sign = xp.sgn(xp.sgn(r) @ weights)
+    canonical = r * sign
+    w, v = canonical[..., :1], canonical[..., 1:]
+    u = (v * v).sum(-1, keepdim=True)
+    small = u < series_threshold(xp, u.dtype)
+    series = xp.addcmul(one, u, xp.add(sixth, u, alpha=3 / 40))
+    s = xp.sqrt(u)
+    g = 2.0 * xp.where(small, series, xp.atan2(s, w) / s)
+    return g * v, w, v, g, u, small, sign
+
+
+def log_of_relative_cotangent(
+    xp: Any, r: Any, phi: Any, w: Any, v: Any, g: Any, u: Any, small: Any, sign: Any, gphi: Any, *gaux: Any
 ) -> Any:
-    """:func:`bound_angular_velocity_from_quaternions`, eager form: ``quaternion_minus``'s eager form
-    of consecutive samples (its unit quaternions, relative rotation and logarithm), each sample made
-    unit once (the componentwise form makes the inner ones unit twice, to the same bits: the map is
-    row by row), divided by the step."""
-    body = check_frame("angular_velocity_from_quaternions", frame)
-    w, v = _unit(xp, q, scalar_first)
-    later = (w[..., 1:, :], v[..., 1:, :])
-    inverse = (w[..., :-1, :], -v[..., :-1, :])
-    relative = _product(inverse, later, xp) if body else _product(later, inverse, xp)
-    log = _log_eager(xp, _join(xp, *relative, True))[0]
-    log, step = match_rank(xp, log, dt[..., None, None])
-    return log / step
+    """The cotangent of :func:`log_of_relative`'s input ``r`` from those of its outputs (None where not
+    given: ``gw``, ``gv``, ``gg`` and ``gu`` only in the pass of a second derivative, which
+    differentiates this).
+
+    For ``|r| = 1``: ``phi = g v``, ``dg = sign (-2 dr_w + c v . dr_v)`` up to a multiple of ``r . dr``
+    (``phi`` is blind to ``|r|``, and the unit quaternions ``r`` is made of see no such component) with
+    ``c = (2 w - g) / u``, whose series is ``-4/3 - 2 u / 5`` (next term ``-3 u^2 / 14``) below the
+    threshold; ``(dw, dv) = sign dr``, ``du = 2 sign v . dr_v``. So ``gr = sign (-2 a - 2 gg + gw, g
+    gphi + (c a + c gg + 2 gu) v + gv)`` with ``a = v . gphi``: fourteen operations in a first
+    derivative."""
+    gw, gv, gg, gu, *_ = gaux
+    _, one, _, four_thirds = constants(xp, r, _log_of_relative_constants)
+    # -c; the closed form divides by 1 where the series is taken (no 0 / 0 for a second derivative)
+    minus_c = xp.where(
+        small, xp.add(four_thirds, u, alpha=0.4), xp.add(g, w, alpha=-2) / xp.where(small, one, u)
+    )
+    a = 0.0 if gphi is None else (v * gphi).sum(-1, keepdim=True)
+    if gg is not None:
+        a = a + gg
+    # the scalar part's cotangent, and minus the factor of v (both before the sign)
+    scalar = -2.0 * a
+    factor = minus_c * a
+    if gu is not None:
+        factor = factor - 2.0 * gu
+    if gw is not None:
+        scalar = scalar + gw
+    vector = -factor * v if gphi is None else xp.addcmul(g * gphi, factor, v, value=-1)
+    if gv is not None:
+        vector = vector + gv
+    return xp.cat([scalar * sign, vector * sign], -1)
+
+
+def angular_velocity_eager_with(log: Callable[[Any], tuple[Any, ...]]) -> Callable[..., Any]:
+    """:func:`bound_angular_velocity_from_quaternions`'s eager form with ``log`` (``r -> (phi, ...)``,
+    torch's :func:`log_of_relative` with its rule, or without where no derivative is asked): the
+    componentwise form's unit quaternions and relative rotations (``_lie._unit``, ``_lie._product``:
+    the same half-turn signs), each sample made unit once (the componentwise form makes the inner ones
+    unit twice, to the same bits: the map is row by row), their logarithms divided by the step."""
+
+    def angular_velocity_from_quaternions_eager(
+        xp: Any, q: Any, dt: Any, *, frame: str = "body", scalar_first: bool = True
+    ) -> Any:
+        body = check_frame("angular_velocity_from_quaternions", frame)
+        w, v = _unit(xp, q, scalar_first)
+        later = (w[..., 1:, :], v[..., 1:, :])
+        inverse = (w[..., :-1, :], -v[..., :-1, :])
+        relative = _product(inverse, later, xp) if body else _product(later, inverse, xp)
+        rates, step = match_rank(xp, log(_join(xp, *relative, True))[0], dt[..., None, None])
+        return rates / step
+
+    return angular_velocity_from_quaternions_eager
 
 
 # ---------------------------------------------------------------------------------------------------

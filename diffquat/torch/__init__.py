@@ -836,6 +836,18 @@ _core.eager_form(of=_motion.integrate_angular_velocity)(
 )
 
 
+# angular_velocity_from_quaternions' eager form: the logarithm of the relative rotations one Function
+# with a written cotangent (diffquat._motion.log_of_relative), where autodiff of its series, sign and
+# guards was half of the backward pass.
+_core.eager_form(of=_motion.bound_angular_velocity_from_quaternions)(
+    _motion.angular_velocity_eager_with(
+        lean_step(
+            _motion.log_of_relative, _motion.log_of_relative_cotangent, "angular_velocity_from_quaternions"
+        )
+    )
+)
+
+
 @documented(_motion.integrate_angular_velocity)
 def integrate_angular_velocity(
     q: Tensor, omega: Tensor, dt: Tensor | float, *, frame: Frame = "body", scalar_first: bool = True
