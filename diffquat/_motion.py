@@ -53,6 +53,7 @@ from ._algebra import (
 )
 from ._core import (
     Conversion,
+    cancelling_factor,
     constants,
     eager_form,
     join_quaternion,
@@ -1101,6 +1102,10 @@ def integrate_eager_with(exp: Callable[[Any], tuple[Any, ...]]) -> Callable[...,
     return integrate_angular_velocity_eager
 
 
+def _unit_constants() -> tuple[Any, ...]:
+    return 1.0, 0.0
+
+
 def _log_of_relative_constants() -> tuple[Any, ...]:
     # the weights of the canonical sign (_algebra._log_eager's), 1, the series' 1/6 and 4/3
     return [[8.0], [4.0], [2.0], [1.0]], 1.0, 1 / 6, 4 / 3
@@ -1170,18 +1175,27 @@ def angular_velocity_eager_with(log: Callable[[Any], tuple[Any, ...]]) -> Callab
     torch's :func:`log_of_relative` with its rule, or without where no derivative is asked): the
     componentwise form's unit quaternions and relative rotations (``_lie._unit``, ``_lie._product``:
     the same half-turn signs), each sample made unit once (the componentwise form makes the inner ones
-    unit twice, to the same bits: the map is row by row), their logarithms divided by the step."""
+    unit twice, to the same bits: the map is row by row), their logarithms divided by the step.
+
+    The rule for non-finite rows by arithmetic (the sequence is one row): 0 times the sum of the
+    samples' scalar parts (NaN where a sample holds a NaN or an infinity, which reaches its whole unit
+    quaternion) and the step, added to every rate; a constant of differentiation, as
+    ``_backend.nonfinite_rows``' sum, in four operations where that took six."""
 
     def angular_velocity_from_quaternions_eager(
         xp: Any, q: Any, dt: Any, *, frame: str = "body", scalar_first: bool = True
     ) -> Any:
         body = check_frame("angular_velocity_from_quaternions", frame)
-        w, v = _unit(xp, q, scalar_first)
+        if not scalar_first:
+            q = xp.roll(q, 1, -1)  # the very numbers _unit's reordering gives
+        one, zero = constants(xp, q, _unit_constants)
+        w, v = _unit(xp, q, True, one, zero)
         later = (w[..., 1:, :], v[..., 1:, :])
         inverse = (w[..., :-1, :], -v[..., :-1, :])
         relative = _product(inverse, later, xp) if body else _product(later, inverse, xp)
         rates, step = match_rank(xp, log(_join(xp, *relative, True))[0], dt[..., None, None])
-        return rates / step
+        bad = (cancelling_factor(xp, w).sum(-2, keepdim=True) + cancelling_factor(xp, step)) * 0.0
+        return rates / step + bad
 
     return angular_velocity_from_quaternions_eager
 

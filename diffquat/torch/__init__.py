@@ -838,11 +838,15 @@ _core.eager_form(of=_motion.integrate_angular_velocity)(
 
 # angular_velocity_from_quaternions' eager form: the logarithm of the relative rotations one Function
 # with a written cotangent (diffquat._motion.log_of_relative), where autodiff of its series, sign and
-# guards was half of the backward pass.
+# guards was half of the backward pass; NaN sequences by its arithmetic.
 _core.eager_form(of=_motion.bound_angular_velocity_from_quaternions)(
-    _motion.angular_velocity_eager_with(
-        lean_step(
-            _motion.log_of_relative, _motion.log_of_relative_cotangent, "angular_velocity_from_quaternions"
+    _core.nonfinite_by_arithmetic(
+        _motion.angular_velocity_eager_with(
+            lean_step(
+                _motion.log_of_relative,
+                _motion.log_of_relative_cotangent,
+                "angular_velocity_from_quaternions",
+            )
         )
     )
 )
