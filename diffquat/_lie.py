@@ -650,7 +650,7 @@ def _relative_matrix(xp: Any, matrix1: Any, matrix2: Any, right: bool) -> Any:
     return small_matmul(xp, b_t, a) if right else small_matmul(xp, a, b_t)
 
 
-def _unit(xp: Any, q: Any, scalar_first: bool) -> tuple[Any, Any]:
+def _unit(xp: Any, q: Any, scalar_first: bool, one: Any = 1.0, zero: Any = 0.0) -> tuple[Any, Any]:
     """``q / |q|`` as its scalar part ``(..., 1)`` and vector part ``(..., 3)``, the zero quaternion
     (squared norm below the smallest normal number, as ``nonzero_or_identity``) read as the identity.
 
@@ -660,16 +660,18 @@ def _unit(xp: Any, q: Any, scalar_first: bool) -> tuple[Any, Any]:
     quaternion gets the factor 0 and then w = 1: a selection, with a zero derivative. On the
     ``(..., 4)`` array, not component by component: a quarter of the operations, which is what torch's
     eager time at small N is made of. Scalar-last input is reordered first, so that the sums over the
-    last axis add in one order and both storage orders give the very same numbers."""
+    last axis add in one order and both storage orders give the very same numbers. ``one`` and
+    ``zero`` are the selected constants: an eager caller's constant tensors (``_core.constants``)
+    select the same numbers without making a tensor of a Python number per ``where``."""
     if not scalar_first:
         q = xyzw_to_wxyz(xp, q)
-    zero = xp.sum(q * q, axis=-1, keepdims=True) < xp.finfo(q.dtype).tiny
+    is_zero = xp.sum(q * q, axis=-1, keepdims=True) < xp.finfo(q.dtype).tiny
     big = cancelling_factor(xp, xp.amax(xp.abs(q), axis=-1, keepdims=True))
-    scaled = q / xp.where(zero, 1.0, big)
+    scaled = q / xp.where(is_zero, one, big)
     s2 = xp.sum(scaled * scaled, axis=-1, keepdims=True)
     # 1 <= s2 <= 4 where it is used (the largest component is 1); the discarded branch sees 1.
-    unit = scaled * xp.where(zero, 0.0, 1.0 / xp.sqrt(xp.where(zero, 1.0, s2)))
-    return xp.where(zero, 1.0, unit[..., :1]), unit[..., 1:]
+    unit = scaled * xp.where(is_zero, zero, 1.0 / xp.sqrt(xp.where(is_zero, one, s2)))
+    return xp.where(is_zero, one, unit[..., :1]), unit[..., 1:]
 
 
 def _product(p: tuple[Any, Any], q: tuple[Any, Any], xp: Any) -> tuple[Any, Any]:

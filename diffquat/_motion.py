@@ -39,7 +39,6 @@ from typing import Any
 
 from ._algebra import (
     _hamilton_forms,
-    _log_eager,
     axis_angle_to_matrix,
     axis_angle_to_matrix_eager,
     hamilton,
@@ -50,9 +49,11 @@ from ._algebra import (
     quaternion_invert_eager,
     quaternion_slerp,
     quaternion_slerp_eager,
+    series_threshold,
 )
 from ._core import (
     Conversion,
+    cancelling_factor,
     constants,
     eager_form,
     join_quaternion,
@@ -67,8 +68,11 @@ from ._core import (
 )
 from ._lie import (
     _join,
+    _outer,
+    _plus_constants,
     _product,
     _unit,
+    _unit_eager,
     quaternion_minus,
     quaternion_minus_eager,
     quaternion_plus,
@@ -233,18 +237,27 @@ def integrate_angular_velocity(
     return quaternion_plus(xp, q, _within_range(xp, omega * step), side=side, scalar_first=scalar_first)
 
 
+def _range(dtype_max: float) -> tuple[float, float]:
+    """``(top, c)`` for a dtype whose largest finite number is ``dtype_max``: a rotation vector ``v``
+    with ``|v|^2 > top = max / 16`` (``|v| > sqrt(max) / 4``: 4.6e18 rad in float32) is reduced
+    (its square may overflow), after being scaled by the power of two ``c`` (exact). Scaled, not
+    divided by its largest component: XLA multiplies by the reciprocal of a broadcast divisor, which
+    flushes to zero beyond 2^126 in float32. Where reduced ``|v c|`` is then in [2^-8, 2^(maxexp / 2 -
+    5)]: the squares neither over- nor underflow."""
+    return dtype_max / 16, 2.0 ** -(math.frexp(dtype_max)[1] // 2 + 6)
+
+
 def _within_range(xp: Any, v: Any) -> Any:
-    """The rotation vectors ``v`` ``(..., 3)``, those whose angle's square would overflow (a largest
-    component beyond sqrt(max) / 4: 4.6e18 rad in float32) reduced modulo 4 pi along their axis: the
+    """The rotation vectors ``v`` ``(..., 3)``, those whose angle's square would overflow (``|v|`` beyond
+    sqrt(max) / 4: 4.6e18 rad in float32, :func:`_range`) reduced modulo 4 pi along their axis: the
     same rotation and the same quaternion (exp is 4 pi periodic along a fixed axis), finite. The others
     are ``v`` itself, bit for bit. The reduced angle is exact for the rounded angle, which has lost
-    every turn to rounding long before (beyond 1 / eps rad): the axis alone is meaningful there."""
-    largest_finite = float(xp.finfo(v.dtype).max)
-    big = xp.amax(xp.abs(v), axis=-1, keepdims=True) > largest_finite**0.5 / 4
-    # Scaled by a power of two (exact), not divided by the largest component: XLA multiplies by the
-    # reciprocal of a broadcast divisor, which flushes to zero beyond 2^126 in float32. Where big the
-    # largest component is then in [2^-8, 2^(maxexp / 2 - 6)]: the squares neither over- nor underflow.
-    c = 2.0 ** -(math.frexp(largest_finite)[1] // 2 + 6)
+    every turn to rounding long before (beyond 1 / eps rad): the axis alone is meaningful there. The
+    eager form (:func:`exp_in_range`) reduces the same rows."""
+    top, c = _range(float(xp.finfo(v.dtype).max))
+    # |v|^2 itself (inf where it overflows), not the largest component: NaN stays NaN (not big) on
+    # every backend, and the eager form reads the same sum of squares
+    big = xp.sum(v * v, axis=-1, keepdims=True) > top
     w = v * c
     angle = xp.sqrt(xp.where(big, xp.sum(w * w, axis=-1, keepdims=True), 1.0))
     # 2 fmod(|v| / 2, 2 pi) = |v| mod 4 pi, without |v| overflowing near the largest finite number
@@ -989,34 +1002,202 @@ def angular_acceleration_eager(
     return cv - (4.0 * a[..., :1]) * a[..., 1:]
 
 
-@eager_form(of=integrate_angular_velocity)
-def integrate_angular_velocity_eager(
-    xp: Any, q: Any, omega: Any, dt: Any, *, frame: str = "body", scalar_first: bool = True
-) -> Any:
-    """:func:`integrate_angular_velocity`, eager form: the same rotation vector, then
-    ``quaternion_plus``'s eager form."""
-    body = check_frame("integrate_angular_velocity", frame)
-    omega, step = match_rank(xp, omega, dt[..., None])
-    side = "right" if body else "left"
-    return quaternion_plus_eager(xp, q, _within_range(xp, omega * step), side=side, scalar_first=scalar_first)
+def _exp_in_range_constants() -> tuple[Any, ...]:
+    # 1, 0, and the first term of twice c2's series (see exp_in_range_cotangent)
+    return 1.0, 0.0, -1 / 12
 
 
-@eager_form(of=bound_angular_velocity_from_quaternions)
-def angular_velocity_from_quaternions_eager(
-    xp: Any, q: Any, dt: Any, *, frame: str = "body", scalar_first: bool = True
+def exp_in_range(xp: Any, v: Any) -> tuple[Any, ...]:
+    """The unit quaternion ``exp(v) = (cos(t / 2), sin(t / 2) v / t)`` (``t = |v|``, scalar first) of the
+    rotation vectors ``v`` ``(..., 3)`` of :func:`integrate_angular_velocity`, eager form: the range
+    reduction of :func:`_within_range` and the exponential in twenty-one operations, for a rule of
+    its own (:func:`exp_in_range_cotangent`), so with no guard for autodiff's sake.
+
+    Where not reduced, the values are ``quaternion_plus``'s eager exponential's (``_algebra._exp_eager``)
+    bit for bit, except below its series' threshold, where ``cos`` and ``sin(t / 2) / t`` are as
+    accurate (at ``t = 0``, ``0 / 0`` is read as its limit 1/2). Where reduced (``|v|^2 > max / 16``),
+    the half-angle is ``fmod(|v c| / (2 c), 2 pi)`` and the direction that of ``v c`` (``c`` a power of
+    two, :func:`_range`): the componentwise form's reduction, the same sum of squares to the bit.
+
+    Returns ``(e, u, k, d2, small, big)``: ``e`` ``(..., 4)``, ``e = (cos h, k u)`` with ``u`` the vector
+    ``v`` (``v c`` where reduced; ``(..., 3)``), ``d2 = |u|^2``, ``k = sin(h) / |u|``, and the masks
+    ``small`` (below the series' threshold) and ``big`` (reduced), ``(..., 1)``: what the rule reads."""
+    top, c = _range(float(xp.finfo(v.dtype).max))
+    t2 = (v * v).sum(-1, keepdim=True)
+    big = t2 > top
+    small = t2 < series_threshold(xp, t2.dtype)
+    angle = xp.sqrt(t2)
+    scaled = v * c
+    # the componentwise form's sum, to the bit: an ulp of |v| / 2 moves its remainder by any amount
+    norm = xp.sqrt((scaled * scaled).sum(-1, keepdim=True))
+    # 2 fmod(|v| / 2, 2 pi) = |v| mod 4 pi, as _within_range
+    half = xp.where(big, xp.fmod(norm * (0.5 / c), 2.0 * math.pi), 0.5 * angle)
+    d = xp.where(big, norm, angle)
+    u = xp.where(big, scaled, v)
+    # sin(0) / 0 = NaN only at v = 0, where u = 0 (k is read by the rule alone there): its limit 1/2.
+    # A NaN row stays NaN: cos(NaN) in e's first entry, which every entry of the product reads.
+    k = xp.nan_to_num(xp.sin(half) / d, nan=0.5)
+    return xp.cat([xp.cos(half), k * u], -1), u, k, d * d, small, big
+
+
+def exp_in_range_cotangent(
+    xp: Any, v: Any, e: Any, u: Any, k: Any, d2: Any, small: Any, big: Any, ge: Any, *gaux: Any
 ) -> Any:
-    """:func:`bound_angular_velocity_from_quaternions`, eager form: ``quaternion_minus``'s eager form
-    of consecutive samples (its unit quaternions, relative rotation and logarithm), each sample made
-    unit once (the componentwise form makes the inner ones unit twice, to the same bits: the map is
-    row by row), divided by the step."""
-    body = check_frame("angular_velocity_from_quaternions", frame)
-    w, v = _unit(xp, q, scalar_first)
-    later = (w[..., 1:, :], v[..., 1:, :])
-    inverse = (w[..., :-1, :], -v[..., :-1, :])
-    relative = _product(inverse, later, xp) if body else _product(later, inverse, xp)
-    log = _log_eager(xp, _join(xp, *relative, True))[0]
-    log, step = match_rank(xp, log, dt[..., None, None])
-    return log / step
+    """The cotangent of :func:`exp_in_range`'s input ``v`` from those of its outputs (None where not
+    given: ``gu``, ``gk``, ``gd2`` only in the pass of a second derivative, which differentiates this).
+
+    With ``u = s v`` (``s`` 1, or ``c`` where reduced), ``d = |u|`` and ``e = (w, vec)``: ``dw = -(k / 2)
+    (u . dv)``, ``d vec = kt dv + c2 (u . dv) u``, ``dk = c2 (u . dv)``, ``d(d2) = 2 s (u . dv)``, ``du =
+    s dv``, where ``kt = sin(h) / |v| = s k`` (below 2^-62 where reduced: 0 to rounding) and ``c2 =
+    (w / 2 - kt) / d2``, whose series ``-1/24 + d2 / 960`` (next term ``d2^2 / 107520``) is taken below
+    the threshold. So ``gv = kt gvec + u (c2 (u . gvec + gk) - (k / 2) gw + 2 s gd2) + s gu``: ten
+    operations in a first derivative."""
+    gu, gk, gd2, *_ = gaux
+    one, zero, series = constants(xp, v, _exp_in_range_constants)
+    kt = xp.where(big, zero, k)
+    # 2 c2; the closed form divides by 1 where the series is taken (no 0 / 0 for a second derivative)
+    closed = xp.add(e[..., :1], kt, alpha=-2) / xp.where(small, one, d2)
+    c2 = xp.where(small, xp.add(series, d2, alpha=1 / 480), closed)
+    # minus twice u's factor, and the rest
+    minus, grad = 0.0, 0.0
+    if ge is not None:
+        gvec = ge[..., 1:]
+        dot = (u * gvec).sum(-1, keepdim=True)
+        minus = xp.addcmul(k * ge[..., :1], c2, dot if gk is None else dot + gk, value=-1)
+        grad = kt * gvec
+    elif gk is not None:
+        minus = -c2 * gk
+    if gd2 is not None or gu is not None:
+        s = xp.where(big, _range(float(xp.finfo(v.dtype).max))[1] * one, one)
+        if gd2 is not None:
+            minus = minus - 4.0 * s * gd2
+        if gu is not None:
+            grad = grad + s * gu
+    return xp.addcmul(grad, minus, u, value=-0.5) if ge is not None else grad - 0.5 * minus * u
+
+
+def integrate_eager_with(exp: Callable[[Any], tuple[Any, ...]]) -> Callable[..., Any]:
+    """:func:`integrate_angular_velocity`'s eager form with ``exp`` (``v -> (e, ...)``, torch's
+    :func:`exp_in_range` with its rule, or without where no derivative is asked): ``omega dt``, its
+    exponential, then ``quaternion_plus``'s unit quaternion and product (``_lie._unit_eager``,
+    ``_lie._outer``), so below the range reduction and the series' threshold the result is
+    ``quaternion_plus``'s eager one of ``omega dt`` bit for bit. A NaN or an infinity in ``q`` makes
+    the whole unit quaternion NaN or one of its components, which every entry of the product reads; one
+    in ``omega`` or ``dt`` makes ``cos(h)``, read by every entry, NaN: no rule for non-finite rows is
+    needed after it."""
+
+    def integrate_angular_velocity_eager(
+        xp: Any, q: Any, omega: Any, dt: Any, *, frame: str = "body", scalar_first: bool = True
+    ) -> Any:
+        body = check_frame("integrate_angular_velocity", frame)
+        omega, step = match_rank(xp, omega, dt[..., None])
+        if not scalar_first:
+            q = xp.roll(q, 1, -1)
+        c, _, _, identity, one = constants(xp, q, _plus_constants)
+        unit = _unit_eager(xp, q, identity, one)
+        e = exp(omega * step)[0]
+        out = _outer(xp, unit, e, c) if body else _outer(xp, e, unit, c)
+        return out if scalar_first else xp.roll(out, -1, -1)
+
+    return integrate_angular_velocity_eager
+
+
+def _unit_constants() -> tuple[Any, ...]:
+    return 1.0, 0.0
+
+
+def _log_of_relative_constants() -> tuple[Any, ...]:
+    # the weights of the canonical sign (_algebra._log_eager's), 1, the series' 1/6 and 4/3
+    return [[8.0], [4.0], [2.0], [1.0]], 1.0, 1 / 6, 4 / 3
+
+
+def log_of_relative(xp: Any, r: Any) -> tuple[Any, ...]:
+    """The rotation vector (``quaternion_to_axis_angle``) of the relative rotations ``r`` ``(..., 4)``
+    (scalar first) of :func:`angular_velocity_from_quaternions`, eager form, for a rule of its own
+    (:func:`log_of_relative_cotangent`): ``_algebra._log_eager``'s canonical sign and factor ``g =
+    2 atan2(s, w) / s`` (its series ``2 (1 + u / 6 + 3 u^2 / 40)`` in ``u = s^2`` below the threshold),
+    with no guard for autodiff's sake, and no zero rule or division by the norm: ``r`` is a product of
+    two unit quaternions (its norm 1 to rounding, which changes the vector by as much).
+
+    Returns ``(phi, w, v, g, u, small, sign)``: ``phi = g v`` ``(..., 3)``, the canonical ``sign r =
+    (w, v)``, ``g``, ``u = |v|^2``, ``u`` below the threshold, and ``sign`` (``(..., 1)`` each): what
+    the rule reads."""
+    weights, one, sixth, _ = constants(xp, r, _log_of_relative_constants)
+    # the first non-zero component's sign (each weight exceeds the sum of those after it): exact
+    sign = xp.sgn(xp.sgn(r) @ weights)
+    canonical = r * sign
+    w, v = canonical[..., :1], canonical[..., 1:]
+    u = (v * v).sum(-1, keepdim=True)
+    small = u < series_threshold(xp, u.dtype)
+    series = xp.addcmul(one, u, xp.add(sixth, u, alpha=3 / 40))
+    s = xp.sqrt(u)
+    g = 2.0 * xp.where(small, series, xp.atan2(s, w) / s)
+    return g * v, w, v, g, u, small, sign
+
+
+def log_of_relative_cotangent(
+    xp: Any, r: Any, phi: Any, w: Any, v: Any, g: Any, u: Any, small: Any, sign: Any, gphi: Any, *gaux: Any
+) -> Any:
+    """The cotangent of :func:`log_of_relative`'s input ``r`` from those of its outputs (None where not
+    given: ``gw``, ``gv``, ``gg`` and ``gu`` only in the pass of a second derivative, which
+    differentiates this).
+
+    For ``|r| = 1``: ``phi = g v``, ``dg = sign (-2 dr_w + c v . dr_v)`` up to a multiple of ``r . dr``
+    (``phi`` is blind to ``|r|``, and the unit quaternions ``r`` is made of see no such component) with
+    ``c = (2 w - g) / u``, whose series is ``-4/3 - 2 u / 5`` (next term ``-3 u^2 / 14``) below the
+    threshold; ``(dw, dv) = sign dr``, ``du = 2 sign v . dr_v``. So ``gr = sign (-2 a - 2 gg + gw, g
+    gphi + (c a + c gg + 2 gu) v + gv)`` with ``a = v . gphi``: fourteen operations in a first
+    derivative."""
+    gw, gv, gg, gu, *_ = gaux
+    _, one, _, four_thirds = constants(xp, r, _log_of_relative_constants)
+    # -c; the closed form divides by 1 where the series is taken (no 0 / 0 for a second derivative)
+    minus_c = xp.where(
+        small, xp.add(four_thirds, u, alpha=0.4), xp.add(g, w, alpha=-2) / xp.where(small, one, u)
+    )
+    a = 0.0 if gphi is None else (v * gphi).sum(-1, keepdim=True)
+    if gg is not None:
+        a = a + gg
+    # the scalar part's cotangent, and minus the factor of v (both before the sign)
+    scalar = -2.0 * a
+    factor = minus_c * a
+    if gu is not None:
+        factor = factor - 2.0 * gu
+    if gw is not None:
+        scalar = scalar + gw
+    vector = -factor * v if gphi is None else xp.addcmul(g * gphi, factor, v, value=-1)
+    if gv is not None:
+        vector = vector + gv
+    return xp.cat([scalar * sign, vector * sign], -1)
+
+
+def angular_velocity_eager_with(log: Callable[[Any], tuple[Any, ...]]) -> Callable[..., Any]:
+    """:func:`bound_angular_velocity_from_quaternions`'s eager form with ``log`` (``r -> (phi, ...)``,
+    torch's :func:`log_of_relative` with its rule, or without where no derivative is asked): the
+    componentwise form's unit quaternions and relative rotations (``_lie._unit``, ``_lie._product``:
+    the same half-turn signs), each sample made unit once (the componentwise form makes the inner ones
+    unit twice, to the same bits: the map is row by row), their logarithms divided by the step.
+
+    The rule for non-finite rows by arithmetic (the sequence is one row): 0 times the sum of the
+    samples' scalar parts (NaN where a sample holds a NaN or an infinity, which reaches its whole unit
+    quaternion) and the step, added to every rate; a constant of differentiation, as
+    ``_backend.nonfinite_rows``' sum, in four operations where that took six."""
+
+    def angular_velocity_from_quaternions_eager(
+        xp: Any, q: Any, dt: Any, *, frame: str = "body", scalar_first: bool = True
+    ) -> Any:
+        body = check_frame("angular_velocity_from_quaternions", frame)
+        if not scalar_first:
+            q = xp.roll(q, 1, -1)  # the very numbers _unit's reordering gives
+        one, zero = constants(xp, q, _unit_constants)
+        w, v = _unit(xp, q, True, one, zero)
+        later = (w[..., 1:, :], v[..., 1:, :])
+        inverse = (w[..., :-1, :], -v[..., :-1, :])
+        relative = _product(inverse, later, xp) if body else _product(later, inverse, xp)
+        rates, step = match_rank(xp, log(_join(xp, *relative, True))[0], dt[..., None, None])
+        bad = (cancelling_factor(xp, w).sum(-2, keepdim=True) + cancelling_factor(xp, step)) * 0.0
+        return rates / step + bad
+
+    return angular_velocity_from_quaternions_eager
 
 
 # ---------------------------------------------------------------------------------------------------

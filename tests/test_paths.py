@@ -74,6 +74,37 @@ def test_an_eager_form_with_a_rule_is_for_reverse_mode_only(layout: str) -> None
 
 
 @pytest.mark.filterwarnings("ignore:`torch.jit.script` is deprecated:DeprecationWarning")  # make_dual
+@pytest.mark.parametrize("name", ["integrate_angular_velocity", "angular_velocity_from_quaternions"])
+def test_an_eager_step_with_a_rule_is_for_reverse_mode_only(name: str) -> None:
+    """An eager form one of whose steps has its own reverse rule (``_custom.lean_step``: the rates'
+    exponential and logarithm): that step's lean Function under autograd, the forward alone without a
+    derivative (the same value, bit for bit, in float32), and in forward mode the componentwise form;
+    a non-finite row NaN in each (the eager form by its arithmetic, the componentwise one by the
+    Backend's rule)."""
+    gen = torch.Generator().manual_seed(46)
+    if name == "integrate_angular_velocity":
+        xs = (
+            torch.randn(3, 4, generator=gen),
+            torch.randn(3, 3, generator=gen),
+            torch.rand(3, generator=gen),
+        )
+        xs[1][0, 1] = math.nan
+    else:
+        xs = (torch.randn(3, 5, 4, generator=gen), torch.rand(3, generator=gen) + 0.1)
+        xs[0][0, 2, 1] = math.nan
+    fn = getattr(dq, name)
+    leaves = [x.clone().requires_grad_(True) for x in xs]
+    out = fn(*leaves)
+    assert f"_{name}_leanBackward" in _function_nodes(out)
+    torch.testing.assert_close(out.detach(), fn(*xs), rtol=0, atol=0, equal_nan=True)
+    doubled = tuple(x.double() for x in xs)
+    value, tangent = torch.func.jvp(fn, doubled, doubled)
+    assert torch.isnan(value[0]).all() and torch.isnan(out[0]).all()
+    torch.testing.assert_close(value[1:], fn(*doubled)[1:], rtol=0, atol=1e-14)
+    assert torch.isfinite(tangent[1:]).all()
+
+
+@pytest.mark.filterwarnings("ignore:`torch.jit.script` is deprecated:DeprecationWarning")  # make_dual
 def test_the_form_of_a_call_in_each_context() -> None:
     """The one decision (``_custom.form``), in every context a user calls from: the rule wherever a
     derivative can be asked (autograd, dual tensors, each ``torch.func`` derivative transform, also

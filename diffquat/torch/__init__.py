@@ -29,7 +29,7 @@ from .._types import (
     Side,
     SplineMode,
 )
-from ._custom import choose, custom_derivative, eager_form_with_rule, refuse_onnx
+from ._custom import choose, custom_derivative, eager_form_with_rule, lean_step, refuse_onnx
 
 __all__ = [
     "SE3",
@@ -822,6 +822,34 @@ def angular_acceleration(
     q: Tensor, q_dot: Tensor, q_ddot: Tensor, *, frame: Frame = "body", scalar_first: bool = True
 ) -> Tensor:
     return _B(_motion.angular_acceleration, q, q_dot, q_ddot, frame=frame, scalar_first=scalar_first)
+
+
+# integrate_angular_velocity's eager form: its exponential (with the range reduction) one Function with
+# a written cotangent (diffquat._motion.exp_in_range), where autodiff of its guards was most of the
+# backward pass; NaN rows by its arithmetic.
+_core.eager_form(of=_motion.integrate_angular_velocity)(
+    _core.nonfinite_by_arithmetic(
+        _motion.integrate_eager_with(
+            lean_step(_motion.exp_in_range, _motion.exp_in_range_cotangent, "integrate_angular_velocity")
+        )
+    )
+)
+
+
+# angular_velocity_from_quaternions' eager form: the logarithm of the relative rotations one Function
+# with a written cotangent (diffquat._motion.log_of_relative), where autodiff of its series, sign and
+# guards was half of the backward pass; NaN sequences by its arithmetic.
+_core.eager_form(of=_motion.bound_angular_velocity_from_quaternions)(
+    _core.nonfinite_by_arithmetic(
+        _motion.angular_velocity_eager_with(
+            lean_step(
+                _motion.log_of_relative,
+                _motion.log_of_relative_cotangent,
+                "angular_velocity_from_quaternions",
+            )
+        )
+    )
+)
 
 
 @documented(_motion.integrate_angular_velocity)

@@ -385,6 +385,23 @@ def eager_form_with_rule(
     return eager_form
 
 
+def lean_step(
+    forward: Callable[..., tuple[Tensor, ...]], cotangent: Callable[..., Tensor | None], name: str
+) -> Callable[[Tensor], tuple[Tensor, ...]]:
+    """One step ``forward(xp, x) -> (y, *aux)`` of the eager form of the core function named ``name``,
+    with its reverse rule ``cotangent`` (as for :func:`_lean`): the rule's Function where a derivative
+    can be asked (:func:`form`'s ``"rule"``), the forward alone in any other eager call (the same
+    value, bit for bit). The eager form is then for reverse mode only, as :func:`eager_form_with_rule`'s
+    (:func:`choose` takes the componentwise form in forward mode)."""
+    lean = _lean(forward, cotangent, name)
+    _WITH_RULE.add(name)
+
+    def step(x: Tensor) -> tuple[Tensor, ...]:
+        return lean(x) if form(x) == "rule" else forward(torch, x)
+
+    return step
+
+
 def exporting_to_onnx() -> bool:
     """Whether an ONNX exporter is tracing this call. ``torch.onnx.is_in_onnx_export`` says so for the
     TorchScript exporter and the dynamo exporter's non-strict pass; Dynamo (the strict pass, which the
