@@ -136,8 +136,8 @@ NONFINITE_BY_ARITHMETIC.add("rotation_6d_to_matrix_eager")
 def rotation_6d_to_matrix_eager(xp: Any, d6: Any, axis: int) -> tuple[Any, Any]:
     """:func:`rotation_6d_to_matrix`, eager form, with the 6D vectors stacked along ``axis`` (-1:
     columns, -2: rows): ``(R, parallel)``, ``parallel`` (``(..., 1)``, bool) where ``b2`` is the
-    fallback's. Twenty operations in float32, twenty-two in float64 (``linalg.cross`` and
-    ``linalg.vector_norm`` are one each).
+    fallback's. Twenty operations in float32 on the CPU and CUDA, twenty-two otherwise
+    (``linalg.cross`` and ``linalg.vector_norm`` are one each).
 
     The same map by cross products (``b1``, ``a2`` unit here): ``|b1 x a2|`` is the sine between
     them, and ``v = (b1 x w) x b1 = w - (b1 . w) b1`` is Gram-Schmidt's remainder of ``w`` (``a2``, or
@@ -148,12 +148,13 @@ def rotation_6d_to_matrix_eager(xp: Any, d6: Any, axis: int) -> tuple[Any, Any]:
     componentwise form's conditioning, ``eps / sin``.
 
     Each vector is normalised at every scale of the dtype's range (1e30 and 1e-30 columns): in float32
-    (half precision included) by its norm accumulated in float64, where no square of a float32
-    over- or underflows, divided there and rounded once to float32 (as fast as the scaling below at
-    262144 rows on the CPU, and more accurate); in float64 first divided by its largest component
-    (each its own), then by the norm. A zero ``a1`` takes ``e_x`` and a zero ``a2`` stays zero (sine 0:
-    the fallback), by one selection of the two rows, whose other branch (``0 / 0``) is never read: the
-    rule below differentiates the map itself, not these operations. ``parallel``: the sine at most 8 eps, as
+    (half precision included) on the CPU and CUDA by its norm accumulated in float64, where no square
+    of a float32 over- or underflows, divided there and rounded once to float32 (as fast as the
+    scaling below at 262144 rows on the CPU, and more accurate); otherwise (float64, or a device
+    without float64) first divided by its largest component (each its own), then by the norm. A zero
+    ``a1`` takes ``e_x`` and a zero ``a2`` stays zero (sine 0: the fallback), by one selection of the
+    two rows, whose other branch (``0 / 0``) is never read: the rule below differentiates the map
+    itself, not these operations. ``parallel``: the sine at most 8 eps, as
     the componentwise form's remainder at most 8 eps ``|a2|``; the fallback's axis is the first of
     the smallest ``|b1_k|`` (``argmin``; a tie of ``|a1|`` components is a tie of ``|b1|``'s).
 
@@ -163,7 +164,7 @@ def rotation_6d_to_matrix_eager(xp: Any, d6: Any, axis: int) -> tuple[Any, Any]:
     (NONFINITE_BY_ARITHMETIC)."""
     zero_rows, axes = constants(xp, d6, _six_d_constants)
     pair = d6.reshape(*d6.shape[:-1], 2, 3)
-    if d6.dtype == xp.float32:
+    if d6.dtype == xp.float32 and d6.device.type in ("cpu", "cuda"):  # devices with float64 (not MPS)
         # The norms accumulated in float64, where no square of a float32 over- or underflows, and the
         # division there, rounded once to float32: no range scaling (two operations fewer).
         norm = xp.linalg.vector_norm(pair, 2, -1, True, dtype=xp.float64)
