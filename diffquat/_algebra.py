@@ -728,26 +728,26 @@ def matrix_geodesic_distance(xp: Any, matrix1: Any, matrix2: Any) -> Any:
 
 
 def _skew_and_trace_forms() -> tuple[Any, ...]:
-    """(9, 4): the coefficients of the entries of ``M`` (row-major) in ``axial(M - M^T)`` (``M_21 -
-    M_12``, ``M_02 - M_20``, ``M_10 - M_01``: each two entries with +-1, the others 0) and in
-    ``trace(M)``; and the bias (0, 0, 0, -1) that makes the last column ``trace(M) - 1``."""
-    c = [[0.0] * 4 for _ in range(9)]
+    """(9, 3): the coefficients of the entries of ``M`` (row-major) in ``axial(M - M^T)`` (``M_21 -
+    M_12``, ``M_02 - M_20``, ``M_10 - M_01``: each two entries with +-1, the others 0); (9,): those of
+    ``trace(M)``; and the bias -1 that makes it ``trace(M) - 1``."""
+    c = [[0.0] * 3 for _ in range(9)]
     for i, j, column, sign in (
         (2, 1, 0, 1.0), (1, 2, 0, -1.0),
         (0, 2, 1, 1.0), (2, 0, 1, -1.0),
         (1, 0, 2, 1.0), (0, 1, 2, -1.0),
-        (0, 0, 3, 1.0), (1, 1, 3, 1.0), (2, 2, 3, 1.0),
     ):  # fmt: skip
         c[3 * i + j][column] = sign
-    return c, [0.0, 0.0, 0.0, -1.0]
+    return c, [1.0 if k in (0, 4, 8) else 0.0 for k in range(9)], -1.0
 
 
 @eager_form(of=matrix_geodesic_distance)
 def matrix_geodesic_distance_eager(xp: Any, matrix1: Any, matrix2: Any) -> Any:
-    """:func:`matrix_geodesic_distance`, eager form, in ten operations: ``M = a^T b`` as the sum over
+    """:func:`matrix_geodesic_distance`, eager form, in nine operations: ``M = a^T b`` as the sum over
     ``k`` of the outer products of the rows ``a_k``, ``b_k`` (elementwise products, then one sum over
-    ``k``), then ``(axial(M - M^T), trace(M) - 1)`` as one ``addmm`` with constant coefficients, and
-    ``atan2(|axial|, trace - 1)``, the componentwise form's formula.
+    ``k``), then ``axial(M - M^T)`` as one matrix product with constant coefficients, ``trace(M) - 1``
+    as one ``addmv`` (a vector per matrix: no split of one product's columns, no reshape of the
+    result), and ``atan2(|axial|, trace - 1)``, the componentwise form's formula.
 
     Why not ``a.mT @ b``: a rotation's distance to itself is exactly 0 only if ``M = a^T a`` comes out
     exactly symmetric, and a BLAS product sums its three terms in an order (and with fused
@@ -760,11 +760,17 @@ def matrix_geodesic_distance_eager(xp: Any, matrix1: Any, matrix2: Any) -> Any:
     entries and rides on no choice: BLAS's order changes it by rounding only.
 
     Non-finite rows: a NaN or an infinity in either matrix makes a row of ``M`` NaN or infinite, and
-    the product with the coefficients multiplies every entry of ``M`` by each column's coefficient, 0
-    included (``0 * inf`` and ``0 * NaN`` are NaN in a matrix product), so the whole result is NaN
+    the skew's product multiplies every entry of ``M`` by 0 in two or three of its columns (``0 *
+    inf`` and ``0 * NaN`` are NaN in a matrix product), so ``|axial|`` and the result are NaN
     (NONFINITE_BY_ARITHMETIC). ``linalg.vector_norm``'s derivative is 0 at the zero vector (at equal
     rotations and exact half-turns), as :func:`safe_norm`'s."""
-    c, bias = constants(xp, matrix1, _skew_and_trace_forms)
-    m = (matrix1[..., :, :, None] * matrix2[..., :, None, :]).sum(-3)
-    skew, cos2 = xp.addmm(bias, m.reshape(-1, 9), c).split([3, 1], -1)
-    return xp.atan2(xp.linalg.vector_norm(skew, 2, -1, True), cos2).view(m.shape[:-2])
+    skew_forms, trace_form, minus_one = constants(xp, matrix1, _skew_and_trace_forms)
+    if 0 in matrix1.shape or 0 in matrix2.shape:
+        # torch 2.13's backward of addmv fails on an empty batch ("outer: Expected 1-D argument")
+        return matrix_geodesic_distance(xp, matrix1, matrix2)
+    # keepdim: the sum's backward is then one expand, without an unsqueeze
+    m = (matrix1[..., :, :, None] * matrix2[..., :, None, :]).sum(-3, keepdim=True)
+    flat = m.reshape(-1, 9)
+    cos2 = xp.addmv(minus_one, flat, trace_form)
+    angle = xp.atan2(xp.linalg.vector_norm(flat @ skew_forms, 2, -1), cos2)
+    return angle if m.ndim == 4 else angle.view(m.shape[:-3])

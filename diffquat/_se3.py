@@ -169,9 +169,45 @@ def se3_to_rotation_translation(xp: Any, matrix: Any) -> Any:
         ``(rotation, translation)``, shapes ``(..., 3, 3)`` and ``(..., 3)``: ``T``'s entries. A NaN or
         an infinity anywhere in a pose makes both NaN.
     """
-    # The core gives the top rows [R | t] as one array, so that the backends' rule for non-finite rows
-    # applies to both parts at once; each backend's wrapper splits it.
-    return matrix[..., :3, :]
+    # The core gives R (row-major) and t as one array [R_00, ..., R_22, t_0, t_1, t_2], (..., 12), so
+    # that the backends' rule for non-finite rows applies to both parts at once; each backend's wrapper
+    # splits it (one split and one reshape in eager torch, where the rows [R | t] took a slice and a
+    # select after the slice of the top rows).
+    top = matrix[..., :3, :]
+    return xp.concat([xp.reshape(top[..., :3], (*top.shape[:-2], 9)), top[..., 3]], axis=-1)
+
+
+def _rotation_translation_selection() -> tuple[Any, ...]:
+    """(16, 12): the coefficients of a pose's entries (row-major) in ``[R (row-major) | t]``, one 1 in
+    each column and the other entries 0; (16, 1): zeros."""
+    c = [[0.0] * 12 for _ in range(16)]
+    for i in range(3):
+        for j in range(3):
+            c[4 * i + j][3 * i + j] = 1.0
+        c[4 * i + 3][9 + i] = 1.0
+    return c, [[0.0]] * 16
+
+
+@nonfinite_by_arithmetic
+@eager_form(of=se3_to_rotation_translation)
+def se3_to_rotation_translation_eager(xp: Any, matrix: Any) -> Any:
+    """:func:`se3_to_rotation_translation`, eager form: the flattened poses times a constant (16, 12)
+    selection, plus the term of non-finite rows, the flattened poses times a zero column (three
+    operations, the flattening a view; the slice and the backend's rule for non-finite rows took four).
+
+    The term is the sum of ``0 * x`` over the pose (``_core.zero_or_nan``, as one matrix product): 0
+    for a finite pose, NaN for one with a NaN or an infinity anywhere, its bottom row included (``0 *
+    inf`` and ``0 * NaN`` are NaN in a matrix product), a constant of differentiation. Each entry of
+    the selection is one entry of the pose plus fifteen products by 0, and the term is 0: exact for
+    finite poses, whatever order BLAS sums in (``x + 0 = x``; a ``-0`` may come out ``+0``, as after
+    the backend's rule). The selection alone would leave an infinite entry infinite in the column
+    that selects it; with the term, every entry of a non-finite pose is NaN (NONFINITE_BY_ARITHMETIC).
+    The derivative is the selection's transpose, the identity on ``R`` and ``t``, 0 on the bottom
+    row, as the componentwise form's."""
+    c, zero = constants(xp, matrix, _rotation_translation_selection)
+    flat = matrix.reshape(-1, 16)  # addmm takes matrices: one batch axis
+    out = xp.addmm(cancelling_factor(xp, flat) @ zero, flat, c)
+    return out if matrix.ndim == 3 else out.reshape(*matrix.shape[:-2], 12)
 
 
 # Composing, inverting and applying make non-finite rows NaN by their arithmetic (the backends add

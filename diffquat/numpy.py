@@ -530,8 +530,8 @@ def se3_from_rotation_translation(rotation: ArrayLike, translation: ArrayLike) -
 
 @documented(_se3.se3_to_rotation_translation)
 def se3_to_rotation_translation(matrix: ArrayLike) -> tuple[NDArray[Any], NDArray[Any]]:
-    top = _B(_se3.se3_to_rotation_translation, matrix)
-    return top[..., :3], top[..., 3]
+    flat = _B(_se3.se3_to_rotation_translation, matrix)
+    return flat[..., :9].reshape(*flat.shape[:-1], 3, 3), flat[..., 9:]
 
 
 @documented(_se3.se3_compose)

@@ -667,8 +667,8 @@ def se3_from_rotation_translation(rotation: Tensor, translation: Tensor) -> Tens
 
 @documented(_se3.se3_to_rotation_translation)
 def se3_to_rotation_translation(matrix: Tensor) -> tuple[Tensor, Tensor]:
-    top = _B(_se3.se3_to_rotation_translation, matrix)
-    return top[..., :3], top[..., 3]
+    rotation, translation = _B(_se3.se3_to_rotation_translation, matrix).split([9, 3], -1)
+    return rotation.unflatten(-1, (3, 3)), translation
 
 
 @documented(_se3.se3_compose)
