@@ -486,12 +486,14 @@ _reduced_second_moment = custom_derivative(
     _fi.reduced_second_moment_tangent,
     _fi.reduced_second_moment_tangent,
     captured=_fi.reduced_second_moment_taylor,
+    eager=_fi.reduced_second_moment_eager_rules(),
 )
 _reduced_log_normalizer = custom_derivative(
     _fi.reduced_log_normalizer,
     functools.partial(_fi.reduced_log_normalizer_tangent, moment=_reduced_second_moment),
     functools.partial(_fi.reduced_log_normalizer_cotangent, moment=_reduced_second_moment),
     captured=_fi.reduced_log_normalizer_taylor,
+    eager=_fi.reduced_log_normalizer_eager_rules(),
 )
 
 
