@@ -56,6 +56,7 @@ from ._core import (
     eager_form,
     join_quaternion,
     op,
+    quaternion_to_matrix_eager,
     split_quaternion,
     stack_matrix,
     unit_scale,
@@ -672,7 +673,7 @@ def _acg_beta(xp: Any, lam: Any) -> Any:
     return beta
 
 
-Draw = Callable[[int], tuple[Any, Any]]
+Draw = Callable[[int | None], tuple[Any, Any]]
 
 
 def _lead(xp: Any, a: Any, rank: int) -> Any:
@@ -691,9 +692,10 @@ def matrix_fisher_sample(xp: Any, F: Any, *, draw: Draw) -> Any:
 
     ``draw(k)``, for the rounds ``k = 0 .. SAMPLE_ROUNDS - 1``, returns standard normal numbers of shape
     ``(*sample, *batch, SAMPLE_PROPOSALS, 4)`` and uniform ones in [0, 1) of shape ``(*sample, *batch,
-    SAMPLE_PROPOSALS)``, in F's compute dtype. Each sample is the first accepted proposal (see the
-    comment above), or where all 64 are rejected (probability < 4e-17) the mode. Returns ``(*sample,
-    *batch, 3, 3)``."""
+    SAMPLE_PROPOSALS)``, in F's compute dtype (torch's eager form asks ``draw(None)`` for all rounds'
+    numbers at once, ``SAMPLE_ROUNDS * SAMPLE_PROPOSALS`` proposals, round by round). Each sample is
+    the first accepted proposal (see the comment above), or where all 64 are rejected (probability <
+    4e-17) the mode. Returns ``(*sample, *batch, 3, 3)``."""
     bad = ~xp.all(xp.isfinite(xp.reshape(F, (*F.shape[:-2], 9))), axis=-1)
     b, v = _eigh(xp, davenport(xp, F))
     lam = b[..., 3:4] - b  # >= 0, lam_3 = 0: exp(q^T K q) = e^{b_3} exp(-sum l_a x_a^2), x = V^T q
@@ -739,6 +741,47 @@ def matrix_fisher_sample(xp: Any, F: Any, *, draw: Draw) -> Any:
             2.0 * (qx * qz - w * qy), 2.0 * (qy * qz + w * qx), 1.0 - 2.0 * (qx * qx + qy * qy),
         ],
     )  # fmt: skip
+
+
+def _mode_axis() -> tuple[Any, ...]:
+    return ([0.0, 0.0, 0.0, 1.0],)
+
+
+@eager_form(of=matrix_fisher_sample)
+def matrix_fisher_sample_eager(xp: Any, F: Any, *, draw: Draw) -> Any:
+    """:func:`matrix_fisher_sample`, eager form (torch): the four rounds as one, over all
+    ``SAMPLE_ROUNDS * SAMPLE_PROPOSALS`` proposals (``draw(None)``: the rounds' numbers side by side,
+    which ``draw(k)`` slices), F's batch flattened. The first accepted proposal over the rounds in
+    order is the first accepted one of their concatenation, so the rule is the same; the per-F
+    quantities keep unit axes (B, 1, .) that broadcast against the proposals (S, B, P, .). The
+    rotation is :func:`_core.quaternion_to_matrix_eager`'s, and a non-finite F makes its rows NaN by
+    the arithmetic (a NaN added to q)."""
+    (mode,) = constants(xp, F, _mode_axis)
+    batch = tuple(F.shape[:-2])
+    b, v = xp.linalg.eigh(xp.nan_to_num(_davenport_eager(xp, F), nan=0.0, posinf=0.0, neginf=0.0))
+    lam = (b[:, 3:] - b)[:, None, :]  # (B, 1, 4)
+    twice = lam + lam
+    beta: Any = 1.0  # Newton's steps of _acg_beta, on (B, 1, 1)
+    for _ in range(_NEWTON_STEPS):
+        inv = xp.reciprocal(beta + twice)
+        beta = beta + (xp.sum(inv, -1, keepdim=True) - 1.0) / xp.sum(inv * inv, -1, keepdim=True)
+    log_bound = -0.5 * (4.0 - beta) + 2.0 * xp.log(4.0 / beta)
+    scale = xp.rsqrt(1.0 + twice / beta)
+    normal, uniform = draw(None)
+    rows = math.prod(batch)
+    samples = normal.shape[: normal.ndim - 2 - len(batch)]
+    y = normal.view(math.prod(samples), rows, normal.shape[-2], 4) * scale  # (S, B, P, 4)
+    squares = y * y
+    t = xp.sum(squares * lam, -1, keepdim=True) / xp.sum(squares, -1, keepdim=True)
+    ratio = -t + 2.0 * xp.log1p(t * (2.0 / beta))
+    accept = xp.log1p(-uniform.view(*y.shape[:-1], 1)) < ratio - log_bound
+    first = accept & (xp.cumsum(accept, -2) == 1)
+    pick = xp.where(xp.any(accept, -2), xp.sum(y * first, -2), mode)  # (S, B, 4)
+    pick = pick / xp.linalg.vector_norm(pick, dim=-1, keepdim=True)
+    bad = xp.sum(F * 0.0, (-2, -1)).view(1, rows, 1)  # 0, or NaN for a non-finite F
+    q = xp.sum(v * pick[..., None, :], -1) + bad  # V x: (w, x, y, z)
+    r9, _ = quaternion_to_matrix_eager(xp, q.view(-1, 4))
+    return r9.view(*samples, *batch, 3, 3)
 
 
 # ---------------------------------------------------------------------------------------------------
