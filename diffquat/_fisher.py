@@ -176,17 +176,23 @@ def _talbot(xp: Any, lam: Any, order: int) -> tuple[Any, Any, Any]:
     return log_j, m, xp.concat([rows, last[..., None, :]], axis=-2)
 
 
-def _lower_toeplitz(xp: Any, u: Any) -> Any:
-    """``(..., n) -> (..., n, n)``: the matrix of the truncated product of power series by ``u``,
-    ``T[K, k] = u[K - k]`` for ``K >= k`` and 0 above the diagonal, as one matrix product with the 0/1
-    tensor ``[K - k == d]``, built from ``arange``: a gather by a constant index, or a constant from a
-    Python list of n^3 numbers, costs more in torch eager than the product itself (docs/performance.md,
-    Formula shapes)."""
-    n = u.shape[-1]
-    i = xp.arange(n, dtype=u.dtype, device=getattr(u, "device", None))
+def _placement(xp: Any, like: Any) -> Any:
+    """The 0/1 tensor ``[K - k == d]`` (n, n * n) of :func:`_lower_toeplitz` for ``n = like.shape[-1]``,
+    built from ``arange`` (a gather by a constant index, or a constant from a Python list of n^3 numbers,
+    costs more in torch eager than the product itself: docs/performance.md, Formula shapes); made once
+    per series, for all its products."""
+    n = like.shape[-1]
+    i = xp.arange(n, dtype=like.dtype, device=getattr(like, "device", None))
     gap = xp.reshape(i, (1, n, 1)) - xp.reshape(i, (1, 1, n)) - xp.reshape(i, (n, 1, 1))
-    placement = xp.where(gap == 0.0, xp.ones_like(gap), xp.zeros_like(gap))
-    flat = xp.matmul(xp.reshape(u, (-1, n)), xp.reshape(placement, (n, n * n)))
+    return xp.reshape(xp.where(gap == 0.0, xp.ones_like(gap), xp.zeros_like(gap)), (n, n * n))
+
+
+def _lower_toeplitz(xp: Any, u: Any, placement: Any) -> Any:
+    """``(..., n) -> (..., n, n)``: the matrix of the truncated product of power series by ``u``,
+    ``T[K, k] = u[K - k]`` for ``K >= k`` and 0 above the diagonal, as one matrix product with
+    ``placement`` (:func:`_placement`)."""
+    n = u.shape[-1]
+    flat = xp.matmul(xp.reshape(u, (-1, n)), placement)
     return xp.reshape(flat, (*u.shape, n))
 
 
@@ -211,8 +217,9 @@ def _series(xp: Any, b: Any, order: int) -> tuple[Any, Any, Any]:
     binomial = _constant(xp, [math.comb(2 * k, k) / 4.0**k for k in range(n)], b, rank)
     factors = powers * binomial  # (..., 4, n)
     e = factors[..., 3, :]
+    placement = _placement(xp, e)
     for a in (2, 1, 0):
-        e = _times(xp, _lower_toeplitz(xp, factors[..., a, :]), e)
+        e = _times(xp, _lower_toeplitz(xp, factors[..., a, :], placement), e)
     # weights 1/(K+1)!, and the same without K = 0, 1: those terms are 1 and sum(b)/4 = 0 (b is centred,
     # and dropping the rounding of its sum keeps c - 1 ~ |b|^2/24 to its relative precision)
     full = [1.0 / math.factorial(k + 1) for k in range(n)]
@@ -223,7 +230,7 @@ def _series(xp: Any, b: Any, order: int) -> tuple[Any, Any, Any]:
         return log_c, None, None
     # x (1 - b_a x)^(-1) = sum_{k>=1} b_a^(k-1) x^k
     geometric = xp.concat([xp.zeros_like(ones), powers[..., :-1]], axis=-1)  # (..., 4, n)
-    shift = _lower_toeplitz(xp, geometric)  # (..., 4, n, n)
+    shift = _lower_toeplitz(xp, geometric, placement)  # (..., 4, n, n)
     g = _times(xp, shift, e[..., None, :])  # (..., 4, n): coefficients of x (1 - b_a x)^(-1) E
     # dc/db_a - c/4 = sum_K (g_{a,K}/2 - e_K/4) / (K+1)!, whose K = 0, 1 terms cancel exactly
     dev = xp.sum((0.5 * g - 0.25 * e[..., None, :]) * weight[..., None, :], axis=-1)
