@@ -793,25 +793,26 @@ def constants(xp: Any, like: Any, make: Callable[[], tuple[Any, ...]]) -> tuple[
     # only for a plain tensor: a tracer's (make_fx's FakeTensor, a FunctionalTensor) would be cached
     # and handed to later eager calls, which then return fake tensors
     if type(like) is not getattr(xp, "Tensor", type(like)):
-        return tuple(
-            xp.tensor(rows, dtype=xp.int64 if _integers(rows) else like.dtype, device=like.device)
-            for rows in make()
-        )
+        return tuple(xp.tensor(rows, dtype=_dtype(xp, rows, like), device=like.device) for rows in make())
     value = _CONSTANTS.get(key)
     if value is None:
         value = _CONSTANTS[key] = tuple(
-            xp.tensor(rows, dtype=xp.int64 if _integers(rows) else like.dtype, device=like.device)
-            for rows in make()
+            xp.tensor(rows, dtype=_dtype(xp, rows, like), device=like.device) for rows in make()
         )
     return value
 
 
-def _integers(rows: list[Any]) -> bool:
-    """Whether nested lists hold Python ints (an index table) rather than floats."""
+def _dtype(xp: Any, rows: Any, like: Any) -> Any:
+    """A constant's dtype by its first entry: Python ints make an index table (int64), complex numbers
+    ``like``'s complex counterpart (the Fisher normaliser's contour nodes), floats ``like``'s dtype."""
     first = rows
     while isinstance(first, list):
         first = first[0]
-    return isinstance(first, int)
+    if isinstance(first, int):
+        return xp.int64
+    if isinstance(first, complex):
+        return like.dtype.to_complex()
+    return like.dtype
 
 
 def _quadratic_forms() -> list[list[float]]:

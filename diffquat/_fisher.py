@@ -49,12 +49,17 @@ from collections.abc import Callable
 from typing import Any
 
 from ._core import (
+    _TINY32,
     NONFINITE_BY_ARITHMETIC,
     _unit_components,
+    constants,
+    eager_form,
     join_quaternion,
     op,
+    quaternion_to_matrix_eager,
     split_quaternion,
     stack_matrix,
+    unit_scale,
 )
 from ._representations import (
     _INDEX,
@@ -171,17 +176,23 @@ def _talbot(xp: Any, lam: Any, order: int) -> tuple[Any, Any, Any]:
     return log_j, m, xp.concat([rows, last[..., None, :]], axis=-2)
 
 
-def _lower_toeplitz(xp: Any, u: Any) -> Any:
-    """``(..., n) -> (..., n, n)``: the matrix of the truncated product of power series by ``u``,
-    ``T[K, k] = u[K - k]`` for ``K >= k`` and 0 above the diagonal, as one matrix product with the 0/1
-    tensor ``[K - k == d]``, built from ``arange``: a gather by a constant index, or a constant from a
-    Python list of n^3 numbers, costs more in torch eager than the product itself (docs/performance.md,
-    Formula shapes)."""
-    n = u.shape[-1]
-    i = xp.arange(n, dtype=u.dtype, device=getattr(u, "device", None))
+def _placement(xp: Any, like: Any) -> Any:
+    """The 0/1 tensor ``[K - k == d]`` (n, n * n) of :func:`_lower_toeplitz` for ``n = like.shape[-1]``,
+    built from ``arange`` (a gather by a constant index, or a constant from a Python list of n^3 numbers,
+    costs more in torch eager than the product itself: docs/performance.md, Formula shapes); made once
+    per series, for all its products."""
+    n = like.shape[-1]
+    i = xp.arange(n, dtype=like.dtype, device=getattr(like, "device", None))
     gap = xp.reshape(i, (1, n, 1)) - xp.reshape(i, (1, 1, n)) - xp.reshape(i, (n, 1, 1))
-    placement = xp.where(gap == 0.0, xp.ones_like(gap), xp.zeros_like(gap))
-    flat = xp.matmul(xp.reshape(u, (-1, n)), xp.reshape(placement, (n, n * n)))
+    return xp.reshape(xp.where(gap == 0.0, xp.ones_like(gap), xp.zeros_like(gap)), (n, n * n))
+
+
+def _lower_toeplitz(xp: Any, u: Any, placement: Any) -> Any:
+    """``(..., n) -> (..., n, n)``: the matrix of the truncated product of power series by ``u``,
+    ``T[K, k] = u[K - k]`` for ``K >= k`` and 0 above the diagonal, as one matrix product with
+    ``placement`` (:func:`_placement`)."""
+    n = u.shape[-1]
+    flat = xp.matmul(xp.reshape(u, (-1, n)), placement)
     return xp.reshape(flat, (*u.shape, n))
 
 
@@ -206,8 +217,9 @@ def _series(xp: Any, b: Any, order: int) -> tuple[Any, Any, Any]:
     binomial = _constant(xp, [math.comb(2 * k, k) / 4.0**k for k in range(n)], b, rank)
     factors = powers * binomial  # (..., 4, n)
     e = factors[..., 3, :]
+    placement = _placement(xp, e)
     for a in (2, 1, 0):
-        e = _times(xp, _lower_toeplitz(xp, factors[..., a, :]), e)
+        e = _times(xp, _lower_toeplitz(xp, factors[..., a, :], placement), e)
     # weights 1/(K+1)!, and the same without K = 0, 1: those terms are 1 and sum(b)/4 = 0 (b is centred,
     # and dropping the rounding of its sum keeps c - 1 ~ |b|^2/24 to its relative precision)
     full = [1.0 / math.factorial(k + 1) for k in range(n)]
@@ -218,7 +230,7 @@ def _series(xp: Any, b: Any, order: int) -> tuple[Any, Any, Any]:
         return log_c, None, None
     # x (1 - b_a x)^(-1) = sum_{k>=1} b_a^(k-1) x^k
     geometric = xp.concat([xp.zeros_like(ones), powers[..., :-1]], axis=-1)  # (..., 4, n)
-    shift = _lower_toeplitz(xp, geometric)  # (..., 4, n, n)
+    shift = _lower_toeplitz(xp, geometric, placement)  # (..., 4, n, n)
     g = _times(xp, shift, e[..., None, :])  # (..., 4, n): coefficients of x (1 - b_a x)^(-1) E
     # dc/db_a - c/4 = sum_K (g_{a,K}/2 - e_K/4) / (K+1)!, whose K = 0, 1 terms cancel exactly
     dev = xp.sum((0.5 * g - 0.25 * e[..., None, :]) * weight[..., None, :], axis=-1)
@@ -249,6 +261,122 @@ def _moments(xp: Any, b: Any, order: int) -> tuple[Any, Any, Any]:
     if order == 1:
         return value, dev, None
     return value, dev, xp.where(small[..., None, None], second_s, second)
+
+
+# ---------------------------------------------------------------------------------------------------
+# The eager form of the normaliser and its gradient (torch): the same two evaluations, each a few
+# vectorised operations over (batch, node, eigenvalue) or (batch, pair, term) axes (docs/design.md, "Two
+# forms of a map"); the moment rule's nodes serve the value too, so that one contour evaluation gives
+# both (as the captured form's expansion does).
+
+
+def _eager_tables(itemsize: int) -> Callable[[], tuple[Any, ...]]:
+    """The constants of :func:`_eager_moments` for a compute dtype (its itemsize), as a ``make`` for
+    ``_core.constants``:
+
+    - ``nodes`` (n, 1) and ``offsets`` (n,), complex: the Talbot nodes ``z_k`` and ``z_k + log w_k``, of
+      the value's rule and of the moments' (``TALBOT_NODES``);
+    - ``powers`` (m,): 0 .. m - 1, and ``slopes`` (m,), ``scales`` (m,): ``max(k - 1, 0)`` and ``2 k``
+      (the derivative of ``b^k`` is ``k b^(k-1)``; the 2 is that of ``excess``'s two halves below);
+    - ``pair`` (m^2, m) and its transpose: ``c_i c_j [i + j = K]``, the coefficients ``c_k = binom(2k,
+      k) / 4^k`` of ``(1 - b x)^(-1/2)`` folded in, so that one product of the outer product of two
+      eigenvalues' powers gives the series of the product of their two factors (truncated at m - 1);
+    - ``swap`` (2m, 2m): ``[[0, W], [W, 0]]`` with ``W[K, L] = 1 / (K + L + 1)! / 2`` for ``2 <= K + L <
+      m`` (0 else: the terms K = 0, 1 are 1 and ``sum(b) / 4 = 0``), so that ``p . (p swap)`` over the
+      two pairs' series ``p`` is ``c - 1`` (each pair's product with the other's, halved, twice);
+    - ``mix`` (3, 4), ``shift`` (4,): ``m_3 = 1 - m_0 - m_1 - m_2`` and the deviations ``m - 1/4`` of
+      the Laplace inversion's three sums (halved, its ``1/2``)."""
+    m = SERIES_TERMS[itemsize] + 1
+
+    def make() -> tuple[Any, ...]:
+        rules: list[list[Any]] = []
+        for moments in (False, True):
+            x, y, log_w, arg_w = _NODES[(itemsize, moments)]
+            rules.append([[complex(a, b)] for a, b in zip(x, y, strict=True)])
+            rules.append([complex(a + c, b + d) for a, b, c, d in zip(x, y, log_w, arg_w, strict=True)])
+        c = [math.comb(2 * k, k) / 4.0**k for k in range(m)]
+        pair = [[c[i] * c[j] if i + j == k else 0.0 for k in range(m)] for i in range(m) for j in range(m)]
+        pair_t = [list(row) for row in zip(*pair, strict=True)]
+        w = [0.5 / math.factorial(k + 1) if 2 <= k < m else 0.0 for k in range(2 * m)]
+        half = [[w[i + j] for j in range(m)] for i in range(m)]
+        zero = [0.0] * m
+        swap = [zero + row for row in half] + [row + zero for row in half]
+        mix = [[0.5 if a == c else -0.5 if c == 3 else 0.0 for c in range(4)] for a in range(3)]
+        return (
+            *rules,
+            [float(k) for k in range(m)],
+            [float(max(k - 1, 0)) for k in range(m)],
+            [2.0 * k for k in range(m)],
+            pair,
+            pair_t,
+            swap,
+            mix,
+            [-0.25, -0.25, -0.25, 0.75],
+        )
+
+    return make
+
+
+_EAGER_TABLES = {itemsize: _eager_tables(itemsize) for itemsize in SERIES_TERMS}
+
+
+def _eager_moments(xp: Any, x: Any, order: int) -> tuple[Any, Any]:
+    """``reduced_log_normalizer`` of symmetric ``x`` (B, 4, 4), torch, and with ``order = 1`` its
+    gradient ``E[q q^T] - I/4`` (B, 4, 4): :func:`_moments`' two evaluations, selected alike.
+
+    - The Laplace inversion in complex arithmetic: ``log(z_k + l_a)`` over a (node, eigenvalue) axis
+      is the modulus and argument of each factor at once; the integrand's logarithm is one sum and one
+      addition, and ``Im`` of its exponentials' sum (the largest modulus factored out) is J. The
+      moments are the same terms over one factor more.
+    - The series as two products of pairs: the outer product of two eigenvalues' powers, contracted
+      with ``pair``, is the series of the product of their two factors; ``c - 1`` is the two pairs'
+      series contracted by the constant ``swap``. Its derivative in ``b_a`` is the power series of
+      ``k b_a^(k-1)`` against the contraction of everything else (``swap`` and ``pair`` again).
+
+    The value's operations are the same whatever ``order``, so that a differentiated call returns the
+    plain one's value bit for bit. Non-finite entries are replaced by 0 before the eigensolver (the
+    backend then makes their rows NaN)."""
+    b, v = xp.linalg.eigh(xp.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0))
+    nodes, offsets, nodes_m, offsets_m, powers, slopes, scales, pair, pair_t, swap, mix, shift = constants(
+        xp, b, _EAGER_TABLES[b.dtype.itemsize]
+    )
+    m = powers.shape[0]
+    centred = b - xp.mean(b, -1, keepdim=True)
+    small = xp.amax(xp.abs(centred), -1) <= SERIES_RADIUS
+    # the Laplace inversion, l = b_3 - b >= 0
+    lam = (b[:, 3:] - b)[:, None, :]
+    log_z = xp.log(lam + nodes)  # (B, node, a)
+    e = xp.add(offsets, xp.sum(log_z, -1), alpha=-0.5)
+    top = xp.amax(xp.view_as_real(e)[..., 0], -1, keepdim=True)
+    j = xp.view_as_real(xp.sum(xp.exp(e - top), -1))[..., 1]
+    inversion = centred[:, 3] + (top[:, 0] + xp.log(j))
+    # the series; far outside its radius its powers overflow, in rows the selection drops (a matrix
+    # product sums within a row)
+    u = centred[:, :, None] ** powers  # (B, a, k)
+    halves = u.view(-1, 2, 2, m)
+    outer = halves[:, :, 0, :, None] * halves[:, :, 1, None, :]  # (B, pair, i, j)
+    p = xp.mm(outer.view(-1, m * m), pair).view(-1, 2 * m)  # (B, pair * K)
+    q = xp.mm(p, swap)
+    excess = xp.sum(p * q, -1)  # c - 1
+    value = xp.where(small, xp.log1p(excess), inversion)
+    if order == 0:
+        return value, None
+    # Laplace, on the moments' nodes (their terms scaled by the value's largest, the same to a factor
+    # e^{O(n)}): m_a = 1/2 sum_k Im(T_k / (z_k + l_a)) / J for a < 3; m_3 = 1 - their sum (mix, shift)
+    log_z = xp.log(lam + nodes_m)
+    shifted = xp.add(offsets_m, xp.sum(log_z, -1), alpha=-0.5) - top
+    j = xp.view_as_real(xp.sum(xp.exp(shifted), -1))[..., 1]
+    terms = xp.exp(shifted[:, :, None] - log_z[:, :, :3])
+    sums = xp.view_as_real(xp.sum(terms, -2))[..., 1] / j[:, None]
+    dev_inversion = xp.addmm(shift, sums, mix)
+    # series: d(c - 1)/db_a, then m_a - 1/4 = (dc/db_a - c/4) / c, the K = 0, 1 terms cancelled exactly
+    slope = scales * centred[:, :, None] ** slopes  # (B, a, k): 2 k b_a^(k-1)
+    other = xp.mm(q.view(-1, m), pair_t).view(-1, 2, 1, m, m)  # c_i c_j W p_other[i + j], per pair
+    adjoint = xp.sum(other * halves.flip(2)[:, :, :, None, :], -1)  # (B, pair, member, i)
+    d_excess = xp.sum(slope * adjoint.view(-1, 4, m), -1)
+    dev_series = xp.sub(d_excess, excess[:, None], alpha=0.25) / (1.0 + excess)[:, None]
+    dev = xp.where(small[:, None], dev_series, dev_inversion)
+    return value, xp.matmul(v * dev[:, None, :], v.transpose(-1, -2))
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -307,6 +435,57 @@ def _expansion(xp: Any, x0: Any) -> tuple[Any, Any, Any, Any, Any]:
     b, v = _eigh(xp, x0)
     value, dev, second = _moments(xp, b, 2)
     return value, xp.matmul(v * dev[..., None, :], _transpose(xp, v)), v, dev, second
+
+
+def reduced_log_normalizer_eager_rules() -> tuple[Callable[..., Any], ...]:
+    """The eager form of ``reduced_log_normalizer`` (torch), as ``_custom.custom_derivative`` takes it:
+    ``(prepare, forward, cotangent, finish, plain)``. The forward (``_eager_moments``) gives the value
+    with the gradient ``E[q q^T] - I/4`` as an output, so that the reverse rule is one product
+    (``grad * moment``), with no second eigendecomposition; a derivative of that product reaches the
+    moment, whose cotangent is taken back by the Hessian rule (``reduced_second_moment_tangent``,
+    self-adjoint). ``plain``: the value alone, the same operations, for calls of which no derivative
+    can be asked."""
+
+    def prepare(xp: Any, x: Any) -> Any:
+        return xp.reshape(x, (-1, 4, 4))
+
+    def forward(xp: Any, u: Any) -> tuple[Any, Any]:
+        return _eager_moments(xp, u, 1)
+
+    def plain(xp: Any, u: Any) -> tuple[Any]:
+        return (_eager_moments(xp, u, 0)[0],)
+
+    def cotangent(xp: Any, u: Any, value: Any, moment: Any, grad: Any, grad_moment: Any) -> Any:
+        del value
+        out = None if grad is None else grad[:, None, None] * moment
+        if grad_moment is not None:
+            hessian = reduced_second_moment_tangent(xp, u, None, grad_moment)
+            out = hessian if out is None else out + hessian
+        return out
+
+    def finish(xp: Any, x: Any, value: Any) -> Any:
+        return xp.reshape(value, tuple(x.shape[:-2]))
+
+    return prepare, forward, cotangent, finish, plain
+
+
+def reduced_second_moment_eager_rules() -> tuple[Callable[..., Any], ...]:
+    """The eager form of ``reduced_second_moment`` (torch), ``(prepare, forward, cotangent, finish)``:
+    the moments of ``_eager_moments``, the same numbers as the normaliser's eager gradient, with the
+    Hessian rule (self-adjoint) as its reverse rule."""
+    prepare, _, _, _, _ = reduced_log_normalizer_eager_rules()
+
+    def forward(xp: Any, u: Any) -> tuple[Any]:
+        return (_eager_moments(xp, u, 1)[1],)
+
+    def cotangent(xp: Any, u: Any, moment: Any, grad: Any) -> Any:
+        del moment
+        return None if grad is None else reduced_second_moment_tangent(xp, u, None, grad)
+
+    def finish(xp: Any, x: Any, moment: Any) -> Any:
+        return xp.reshape(moment, tuple(x.shape))
+
+    return prepare, forward, cotangent, finish
 
 
 def reduced_log_normalizer_taylor(xp: Any, x0: Any, dx: Any) -> Any:
@@ -434,6 +613,37 @@ def matrix_fisher_nll(
     return log_c - xp.sum(energy, axis=(-2, -1))
 
 
+def _davenport_table() -> tuple[Any, ...]:
+    """(9, 16): ``davenport`` of each of the nine unit matrices, so that ``K(F)`` is one product of F's
+    entries with it (each entry a sum of two or three of them with coefficients +-1)."""
+    import numpy as np
+
+    return (davenport(np, np.eye(9).reshape(9, 3, 3)).reshape(9, 16).tolist(),)
+
+
+def _davenport_eager(xp: Any, F: Any) -> Any:
+    """``davenport`` of F (..., 3, 3) as (B, 4, 4), B the flattened batch: one product."""
+    (table,) = constants(xp, F, _davenport_table)
+    return xp.mm(xp.reshape(F, (-1, 9)), table).view(-1, 4, 4)
+
+
+@eager_form(of=matrix_fisher_log_normalizer)
+def matrix_fisher_log_normalizer_eager(
+    xp: Any, F: Any, *, normalizer: Normalizer = reduced_log_normalizer
+) -> Any:
+    """:func:`matrix_fisher_log_normalizer`, eager form: ``K(F)`` as one product."""
+    return xp.reshape(normalizer(xp, _davenport_eager(xp, F)), tuple(F.shape[:-2]))
+
+
+@eager_form(of=matrix_fisher_nll)
+def matrix_fisher_nll_eager(
+    xp: Any, F: Any, matrix: Any, *, normalizer: Normalizer = reduced_log_normalizer
+) -> Any:
+    """:func:`matrix_fisher_nll`, eager form: the normaliser on F's batch, the energy by broadcasting."""
+    log_c = xp.reshape(normalizer(xp, _davenport_eager(xp, F)), tuple(F.shape[:-2]))
+    return log_c - xp.sum(F * matrix, (-2, -1))
+
+
 @op(F=(3, 3))
 def matrix_fisher_mode(xp: Any, F: Any, *, procrustes: Callable[[Any, Any], Any] = special_procrustes) -> Any:
     """The mode of the matrix Fisher distribution: the rotation nearest to F.
@@ -470,7 +680,7 @@ def _acg_beta(xp: Any, lam: Any) -> Any:
     return beta
 
 
-Draw = Callable[[int], tuple[Any, Any]]
+Draw = Callable[[int | None], tuple[Any, Any]]
 
 
 def _lead(xp: Any, a: Any, rank: int) -> Any:
@@ -489,9 +699,10 @@ def matrix_fisher_sample(xp: Any, F: Any, *, draw: Draw) -> Any:
 
     ``draw(k)``, for the rounds ``k = 0 .. SAMPLE_ROUNDS - 1``, returns standard normal numbers of shape
     ``(*sample, *batch, SAMPLE_PROPOSALS, 4)`` and uniform ones in [0, 1) of shape ``(*sample, *batch,
-    SAMPLE_PROPOSALS)``, in F's compute dtype. Each sample is the first accepted proposal (see the
-    comment above), or where all 64 are rejected (probability < 4e-17) the mode. Returns ``(*sample,
-    *batch, 3, 3)``."""
+    SAMPLE_PROPOSALS)``, in F's compute dtype (torch's eager form asks ``draw(None)`` for all rounds'
+    numbers at once, ``SAMPLE_ROUNDS * SAMPLE_PROPOSALS`` proposals, round by round). Each sample is
+    the first accepted proposal (see the comment above), or where all 64 are rejected (probability <
+    4e-17) the mode. Returns ``(*sample, *batch, 3, 3)``."""
     bad = ~xp.all(xp.isfinite(xp.reshape(F, (*F.shape[:-2], 9))), axis=-1)
     b, v = _eigh(xp, davenport(xp, F))
     lam = b[..., 3:4] - b  # >= 0, lam_3 = 0: exp(q^T K q) = e^{b_3} exp(-sum l_a x_a^2), x = V^T q
@@ -539,6 +750,47 @@ def matrix_fisher_sample(xp: Any, F: Any, *, draw: Draw) -> Any:
     )  # fmt: skip
 
 
+def _mode_axis() -> tuple[Any, ...]:
+    return ([0.0, 0.0, 0.0, 1.0],)
+
+
+@eager_form(of=matrix_fisher_sample)
+def matrix_fisher_sample_eager(xp: Any, F: Any, *, draw: Draw) -> Any:
+    """:func:`matrix_fisher_sample`, eager form (torch): the four rounds as one, over all
+    ``SAMPLE_ROUNDS * SAMPLE_PROPOSALS`` proposals (``draw(None)``: the rounds' numbers side by side,
+    which ``draw(k)`` slices), F's batch flattened. The first accepted proposal over the rounds in
+    order is the first accepted one of their concatenation, so the rule is the same; the per-F
+    quantities keep unit axes (B, 1, .) that broadcast against the proposals (S, B, P, .). The
+    rotation is :func:`_core.quaternion_to_matrix_eager`'s, and a non-finite F makes its rows NaN by
+    the arithmetic (a NaN added to q)."""
+    (mode,) = constants(xp, F, _mode_axis)
+    batch = tuple(F.shape[:-2])
+    b, v = xp.linalg.eigh(xp.nan_to_num(_davenport_eager(xp, F), nan=0.0, posinf=0.0, neginf=0.0))
+    lam = (b[:, 3:] - b)[:, None, :]  # (B, 1, 4)
+    twice = lam + lam
+    beta: Any = 1.0  # Newton's steps of _acg_beta, on (B, 1, 1)
+    for _ in range(_NEWTON_STEPS):
+        inv = xp.reciprocal(beta + twice)
+        beta = beta + (xp.sum(inv, -1, keepdim=True) - 1.0) / xp.sum(inv * inv, -1, keepdim=True)
+    log_bound = -0.5 * (4.0 - beta) + 2.0 * xp.log(4.0 / beta)
+    scale = xp.rsqrt(1.0 + twice / beta)
+    normal, uniform = draw(None)
+    rows = math.prod(batch)
+    samples = normal.shape[: normal.ndim - 2 - len(batch)]
+    y = normal.view(math.prod(samples), rows, normal.shape[-2], 4) * scale  # (S, B, P, 4)
+    squares = y * y
+    t = xp.sum(squares * lam, -1, keepdim=True) / xp.sum(squares, -1, keepdim=True)
+    ratio = -t + 2.0 * xp.log1p(t * (2.0 / beta))
+    accept = xp.log1p(-uniform.view(*y.shape[:-1], 1)) < ratio - log_bound
+    first = accept & (xp.cumsum(accept, -2) == 1)
+    pick = xp.where(xp.any(accept, -2), xp.sum(y * first, -2), mode)  # (S, B, 4)
+    pick = pick / xp.linalg.vector_norm(pick, dim=-1, keepdim=True)
+    bad = xp.sum(F * 0.0, (-2, -1)).view(1, rows, 1)  # 0, or NaN for a non-finite F
+    q = xp.sum(v * pick[..., None, :], -1) + bad  # V x: (w, x, y, z)
+    r9, _ = quaternion_to_matrix_eager(xp, q.view(-1, 4))
+    return r9.view(*samples, *batch, 3, 3)
+
+
 # ---------------------------------------------------------------------------------------------------
 # Bingham NLL for the 10D head
 
@@ -578,4 +830,53 @@ def bingham_nll(
     u = xp.stack([w, x, y, z], axis=-1)
     full = xp.broadcast_to(_lead(xp, mat, len(batch) + 2), (*batch, 4, 4))
     energy = xp.sum(u * xp.matmul(full, u[..., None])[..., 0], axis=-1)
+    return energy + log_c
+
+
+def _bingham_tables() -> tuple[Any, ...]:
+    """The constants of :func:`bingham_nll_eager`, in scalar-first order:
+
+    - (10, 16): ``K = tr(A)/4 I - A`` from the ten entries;
+    - (16, 11): from the products ``u_i u_j`` (row-major), the coefficient of each of the ten entries in
+      ``u^T A u - tr(A) |u|^2 / 4`` and, last, ``|u|^2``;
+    - (11,): the bias: those of ``u = e_w`` times ``tiny``, so that the zero quaternion gives exactly the
+      identity's energy (``tiny * c / tiny``), and every other one (``|u|^2 >= 1``) an energy changed
+      by at most ``tiny``, below its rounding;
+    - (10,): the position in scalar-last storage of each scalar-first entry."""
+    import numpy as np
+
+    mats = _symmetric(np, np.eye(10))
+    trace = np.trace(mats, axis1=-2, axis2=-1)
+    to_k = trace[:, None, None] / 4.0 * np.eye(4) - mats
+    forms = np.zeros((4, 4, 11))
+    for k, (i, j) in enumerate(_UPPER):
+        forms[i, j, k] += 1.0
+        if i != j:
+            forms[j, i, k] += 1.0
+        else:
+            forms[range(4), range(4), k] -= 0.25
+    forms[range(4), range(4), 10] = 1.0
+    bias = _TINY32 * forms[0, 0]
+    positions = [_INDEX[(_XYZW[i], _XYZW[j])] for i, j in _UPPER]
+    return to_k.reshape(10, 16).tolist(), forms.reshape(16, 11).tolist(), bias.tolist(), positions
+
+
+@eager_form(of=bingham_nll)
+def bingham_nll_eager(
+    xp: Any, a: Any, q: Any, *, scalar_first: bool = True, normalizer: Normalizer = reduced_log_normalizer
+) -> Any:
+    """:func:`bingham_nll`, eager form. With ``A_0 = A - tr(A)/4 I``, ``q^T A q / |q|^2 - tr(A)/4 = u^T A_0
+    u / |u|^2`` and the normaliser depends on ``A_0`` alone: the normaliser of ``-A_0`` (one product of
+    the ten entries) plus the energy ``a . f(u) / |u|^2``, where ``f(u)`` and ``|u|^2`` are one product
+    of ``u u^T`` (``u`` = :func:`_core.unit_scale` of q). Scalar-last storage is reordered first (an
+    index and a roll), so that both orders compute the same numbers."""
+    to_k, forms, bias, positions = constants(xp, a, _bingham_tables)
+    if not scalar_first:
+        a, q = xp.index_select(a, -1, positions), xp.roll(q, 1, -1)
+    k = xp.mm(xp.reshape(a, (-1, 10)), to_k).view(-1, 4, 4)  # -A_0
+    log_c = xp.reshape(normalizer(xp, k), tuple(a.shape[:-1]))
+    u = unit_scale(xp, q)
+    p = xp.addmm(bias, (u[..., :, None] * u[..., None, :]).reshape(-1, 16), forms)
+    f, n = p.split([10, 1], 1)
+    energy = xp.sum((f / n).view(*q.shape[:-1], 10) * a, -1)
     return energy + log_c

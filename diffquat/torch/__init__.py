@@ -486,12 +486,14 @@ _reduced_second_moment = custom_derivative(
     _fi.reduced_second_moment_tangent,
     _fi.reduced_second_moment_tangent,
     captured=_fi.reduced_second_moment_taylor,
+    eager=_fi.reduced_second_moment_eager_rules(),
 )
 _reduced_log_normalizer = custom_derivative(
     _fi.reduced_log_normalizer,
     functools.partial(_fi.reduced_log_normalizer_tangent, moment=_reduced_second_moment),
     functools.partial(_fi.reduced_log_normalizer_cotangent, moment=_reduced_second_moment),
     captured=_fi.reduced_log_normalizer_taylor,
+    eager=_fi.reduced_log_normalizer_eager_rules(),
 )
 
 
@@ -579,11 +581,17 @@ def matrix_fisher_sample(
     (checked,), dtype = _B.validate("matrix_fisher_sample", F)
     checked = checked.detach()
     compute = _B.compute_dtype(dtype)
-    size = (*shape_tuple(shape), *checked.shape[:-2], _fi.SAMPLE_PROPOSALS)
+    # all rounds' numbers drawn at once (two operations), each round a slice of them, so that the eager
+    # form (all rounds as one: draw(None)) and the componentwise one draw the same numbers
+    size = (*shape_tuple(shape), *checked.shape[:-2], _fi.SAMPLE_ROUNDS * _fi.SAMPLE_PROPOSALS)
+    options: dict[str, Any] = {"generator": generator, "dtype": compute, "device": checked.device}
+    numbers = torch.randn((*size, 4), **options), torch.rand(size, **options)
 
-    def draw(k: int) -> tuple[Tensor, Tensor]:
-        options: dict[str, Any] = {"generator": generator, "dtype": compute, "device": checked.device}
-        return torch.randn((*size, 4), **options), torch.rand(size, **options)
+    def draw(k: int | None) -> tuple[Tensor, Tensor]:
+        if k is None:
+            return numbers
+        part = slice(k * _fi.SAMPLE_PROPOSALS, (k + 1) * _fi.SAMPLE_PROPOSALS)
+        return numbers[0][..., part, :], numbers[1][..., part]
 
     return _B(_fi.matrix_fisher_sample, checked, draw=draw)
 

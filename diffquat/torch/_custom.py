@@ -239,7 +239,8 @@ def custom_derivative(
     whose autodiff is the map's exact derivative to every order.
 
     With ``eager`` (``_core.eager_rules``: prepare, forward, cotangent, finish; a forward None: the
-    map's own, as the opaque geodesic means keep theirs), an eager
+    map's own, as the opaque geodesic means keep theirs; optionally a fifth, the forward without
+    the auxiliary outputs, for the calls that take no rule), an eager
     call outside forward mode takes the map's eager form (few vectorised operations) with its own
     rules, registered by :func:`_lean` (:func:`form` decides, as above); forward mode (an open dual
     level: ``jvp``, ``jacfwd``, ``hessian``) keeps the Function below, exact to every order through
@@ -256,6 +257,9 @@ def custom_derivative(
     if eager is not None and eager[1] is not None:
         eager_forward = eager[1]
     lean = None if eager is None else _lean(eager_forward, eager[2], forward.__name__)
+    # a fifth entry: the eager forward without the outputs only its rule reads (the Fisher normaliser's
+    # gradient), for calls of which no derivative can be asked
+    plain = eager[4] if eager is not None and len(eager) > 4 else eager_forward
 
     class Eager(torch.autograd.Function):
         """Returns ``(y, copy of x)``. The copy is what ``jvp`` reads x from: autograd calls ``jvp``
@@ -305,9 +309,9 @@ def custom_derivative(
             and exact_products(x)
             and few_rows(forward.__name__, x)
         ):
-            prepare, *_, finish = eager
+            prepare, finish = eager[0], eager[3]
             u = prepare(torch, x)
-            return finish(torch, x, (lean(u) if chosen == "rule" else eager_forward(torch, u))[0])
+            return finish(torch, x, (lean(u) if chosen == "rule" else plain(torch, u))[0])
         if chosen == "rule":
             return Eager.apply(x)[0]  # type: ignore[no-untyped-call]
         if chosen == "formula":
