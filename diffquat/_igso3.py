@@ -30,7 +30,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ._algebra import _canonical_components, match_rank, quaternion_to_axis_angle
+from ._algebra import _canonical_components, match_rank, series_threshold
 from ._core import (
     NONFINITE_BY_ARITHMETIC,
     Conversion,
@@ -189,8 +189,9 @@ def _eager(xp: Any, like: Any) -> bool:
 _KEPT: dict[tuple[Any, ...], Any] = {}
 
 
-def _kept(xp: Any, values: tuple[float, ...] | float, like: Any) -> Any:
-    """The constant ``values`` (a number: a 0-d array) in ``like``'s dtype and device, made once."""
+def _kept(xp: Any, values: Any, like: Any) -> Any:
+    """The constant ``values`` (nested tuples of numbers; a number: a 0-d array) in ``like``'s dtype and
+    device, made once."""
     key = (values, like.dtype, like.device)
     out = _KEPT.get(key)
     if out is None:
@@ -502,19 +503,41 @@ def igso3_score(
     # From the relative rotation's quaternion (w >= 0): the angle 2 atan2(s, w) and its gap to pi,
     # 2 atan2(w, s), each without cancellation (pi - omega from a rounded omega would be off by pi's
     # rounding, 1.2e-16, which near pi moves the score by (pi / sigma^2)^2 times as much).
-    w, x, y, z = _canonical_components(xp, to_quaternion(xp, relative), True)
+    w, x, y, z = _canonical(xp, to_quaternion(xp, relative))
     squared = x * x + y * y + z * z
     positive = squared > 0
     # |xyz| with a zero derivative at 0: the factor is even in omega, so its derivative there is 0
-    s = xp.where(positive, xp.sqrt(xp.where(positive, squared, 1.0)), 0.0)
+    one, zero = _number(xp, 1.0, squared), _number(xp, 0.0, squared)
+    s = xp.where(positive, xp.sqrt(xp.where(positive, squared, one)), zero)
     omega = 2.0 * xp.atan2(s, w)
     gap = 2.0 * xp.atan2(w, s)
+    # phi = k xyz, k = omega / s, as quaternion_to_axis_angle takes it (the same values): its series
+    # in r^2 = s^2 / w^2 near the identity (there w >= |q| / sqrt(2) > 0), else omega itself over s
+    small = squared < series_threshold(xp, squared.dtype) * (w * w)
+    r2 = xp.where(small, squared / xp.where(small, w * w, one), zero)
+    series = (2.0 / xp.where(small, w, one)) * (1.0 - r2 / 3.0 + r2 * r2 / 5.0)
+    k = xp.where(small, series, omega / xp.where(small, one, s))
     omega, gap, sigma = match_rank(xp, omega, gap, sigma)
     at = _concentration(xp, sigma, density=False)
     factor = xp.where(at.narrow, _score_dual(xp, omega, gap, at), _score_series(xp, omega, gap, at))
-    phi = quaternion_to_axis_angle(xp, xp.stack([w, x, y, z], axis=-1))
+    phi = k[..., None] * xp.stack([x, y, z], axis=-1)
     factor, phi = match_rank(xp, factor[..., None], phi)
     return factor * phi
+
+
+def _canonical(xp: Any, q: Any) -> tuple[Any, Any, Any, Any]:
+    """:func:`_algebra._canonical_components` of scalar-first ``q`` (zero -> identity, then the sign that
+    makes the first non-zero component positive), the same values; in eager torch over the
+    ``(..., 4)`` axis: the first non-zero component's sign is that of ``sign(q) . (8, 4, 2, 1)``, a sum
+    of small integers and so exact in any order (no choice rides on a rounding)."""
+    if not _eager(xp, q):
+        return _canonical_components(xp, q, True)
+    squares = xp.unbind(q * q, dim=-1)
+    n2 = squares[0] + squares[1] + squares[2] + squares[3]  # nonzero_or_identity's order
+    q = xp.where((n2 < xp.finfo(q.dtype).tiny)[..., None], _kept(xp, (1.0, 0.0, 0.0, 0.0), q), q)
+    flip = xp.matmul(xp.sign(q), _kept(xp, (8.0, 4.0, 2.0, 1.0), q)) < 0
+    w, x, y, z = xp.unbind(xp.where(flip[..., None], -q, q), dim=-1)
+    return w, x, y, z
 
 
 def _erf(xp: Any, x: Any) -> Any:
@@ -535,6 +558,16 @@ _GL_NODES, _GL_WEIGHTS = (
     for i, part in enumerate(np.polynomial.legendre.leggauss(16))
 )
 _CDF_HARMONICS = tuple(float(k) for k in range(1, _TERMS + 2))  # sin(k omega), k = 1 ... 10
+# (t / 2)^2 at the nodes t, so that the integrand's e^(d^2 t^2) is e^(eps (t / 2)^2)
+_GL_QUARTER_SQUARES = tuple(0.25 * t * t for t in _GL_NODES)
+# The series' CDF, sum_l w_l (sin(l omega) / l - sin((l + 1) omega) / (l + 1)) - sin(omega), regrouped by
+# harmonic: sin(k omega) has (w_k - w_(k-1)) / k, with w_10 = 0 and w_0 = 1 (the -sin(omega)): the
+# coefficients are w times the (9, 10) matrix of +-1 / k, plus -1 at k = 1.
+_CDF_DIFFERENCES = tuple(
+    tuple((1.0 if k == ell else -1.0 if k == ell + 1 else 0.0) / k for k in range(1, _TERMS + 2))
+    for ell in range(1, _TERMS + 1)
+)
+_CDF_FIRST = (-1.0,) + (0.0,) * _TERMS
 
 
 class _CdfConcentration(NamedTuple):
@@ -543,7 +576,6 @@ class _CdfConcentration(NamedTuple):
     three parts, the series' coefficients over its harmonics."""
 
     narrow: Any  # where the dual form applies (see _forms)
-    twice_root: Any  # 2 sqrt(eps)
     half_root: Any  # sqrt(eps) / 2
     root: Any  # sqrt(eps)
     quarter: Any  # e^(eps / 4)
@@ -563,14 +595,17 @@ def _cdf_concentration(xp: Any, sigma: Any, forms: Any = None, density: bool = F
     narrow, eps, eps_series = _forms(xp, sigma) if forms is None else forms
     e = eps[..., None]
     root = xp.sqrt(e)
-    nodes = _row(xp, _GL_NODES, e, e.ndim + 1)
-    weights = _row(xp, _GL_WEIGHTS, e, e.ndim + 1) * xp.exp((0.25 * e)[..., None] * (nodes * nodes))
+    growth = xp.exp(e[..., None] * _row(xp, _GL_QUARTER_SQUARES, e, e.ndim + 1))
+    weights = _row(xp, _GL_WEIGHTS, e, e.ndim + 1) * growth
     ell = _row(xp, _CDF_HARMONICS, eps, eps.ndim + 1)
-    # the series' terms l = 1 ... 9 times (sin(l omega) / l - sin((l + 1) omega) / (l + 1)), regrouped
-    # by harmonic: sin(k omega) has (w_k - w_(k-1)) / k, with w_10 = 0 and w_0 = 1 (omega - sin omega)
     w = _series_weights(xp, eps_series)
-    zero = xp.zeros_like(w[..., :1])
-    coefficients = (xp.concat([w, zero], axis=-1) - xp.concat([zero + 1.0, w], axis=-1)) / ell
+    if _eager(xp, w) and w.ndim == 2:
+        coefficients = xp.addmm(_kept(xp, _CDF_FIRST, w), w, _kept(xp, _CDF_DIFFERENCES, w))
+    else:
+        differences = xp.reshape(
+            _constant(xp, [v for r in _CDF_DIFFERENCES for v in r], w, 1), (_TERMS, _TERMS + 1)
+        )
+        coefficients = xp.matmul(w, differences) + _row(xp, _CDF_FIRST, w, w.ndim)
     quarter = xp.exp(0.25 * e)
     scale = total = tails = None
     if density:
@@ -578,9 +613,9 @@ def _cdf_concentration(xp: Any, sigma: Any, forms: Any = None, density: bool = F
         # mode multiplies a zero tangent by it: the sampler's sigma below the smallest)
         scale = quarter / ((0.5 * math.sqrt(math.pi)) * e)
         total, tails = _tails(xp, w)
-        tails = xp.concat([tails, zero], axis=-1)
+        tails = xp.concat([tails, xp.zeros_like(w[..., :1])], axis=-1)
     return _CdfConcentration(
-        narrow, 2.0 * root, 0.5 * root, root, quarter, weights, ell, coefficients, scale, total, tails
+        narrow, 0.5 * root, root, quarter, weights, ell, coefficients, scale, total, tails
     )
 
 
@@ -602,13 +637,12 @@ def _cdf_dual(xp: Any, omega: Any, at: _CdfConcentration) -> tuple[Any, Any, Any
     arithmetic, and ``e^(-x^2)`` multiplies only bounded factors (it underflows to 0 in the tail).
 
     Returns ``F``, and for :func:`_cdf_and_density` the three ``x``, ``sin(u / 2)`` and ``e^(-x^2)``."""
-    # omega, 2 pi - omega, 2 pi + omega: each one rounding, as their sums and differences
-    u = omega[..., None] * _row(xp, (1.0, -1.0, 1.0), omega, omega.ndim + 1) + _row(
-        xp, (0.0, 2.0 * math.pi, 2.0 * math.pi), omega, omega.ndim + 1
+    # a = u / 2 of omega, 2 pi - omega, 2 pi + omega: each one rounding, as their sums and differences
+    a = omega[..., None] * _row(xp, (0.5, -0.5, 0.5), omega, omega.ndim + 1) + _row(
+        xp, (0.0, math.pi, math.pi), omega, omega.ndim + 1
     )
-    x = u / at.twice_root
-    a = 0.5 * u
-    nodes = _row(xp, _GL_NODES, u, u.ndim + 1)
+    x = a / at.root
+    nodes = _row(xp, _GL_NODES, a, a.ndim + 1)
     integral = xp.sum(at.weights * xp.sin(a[..., None] * nodes), axis=-1)
     # (e^(eps / 4) sin(a)) / sqrt(eps) in this order: its derivative at u = 0 then cancels that of erf
     # exactly (both ~1 / sqrt(eps)), and F's derivative at the identity is 0
@@ -685,11 +719,12 @@ def igso3_angle_cdf(xp: Any, angle: Any, sigma: Any) -> Any:
 def _angle_cdf_at(xp: Any, angle: Any, at: _CdfConcentration) -> Any:
     """:func:`igso3_angle_cdf` at a concentration made beforehand (``angle`` of its rank)."""
     # selections, so that the derivative is 0 outside [0, pi] (and F exact at the ends)
-    zero = _number(xp, 0.0, angle)
-    omega = xp.where(angle < 0.0, zero, xp.where(angle > math.pi, _number(xp, math.pi, angle), angle))
+    # (pi itself from pi on: F is 1 there, below)
+    top = angle >= math.pi
+    omega = xp.where(angle < 0.0, _number(xp, 0.0, angle), xp.where(top, _number(xp, math.pi, angle), angle))
     cdf = xp.where(at.narrow, _cdf_dual(xp, omega, at)[0], _cdf_series(xp, omega, at)[0])
     # 1 exactly from pi as the dtype rounds it (float32's is pi + 8.7e-8, where the forms give 1 - ulp)
-    return xp.where(angle >= math.pi, _number(xp, 1.0, cdf), cdf)
+    return xp.where(top, _number(xp, 1.0, cdf), cdf)
 
 
 # Steps of the angle's inversion (see _angle_quantile): from its start, 12 bring every (sigma, u) of a
