@@ -53,6 +53,8 @@ _SIZES = tuple(2.0 * j + 1.0 for j in _HARMONICS)  # 2 l + 1
 _RATES = tuple(-j * (j + 1.0) for j in _HARMONICS)  # -l (l + 1)
 _UPPER = tuple(tuple(1.0 if row >= col else 0.0 for col in range(_TERMS)) for row in range(_TERMS))
 _ODD = tuple((-1.0) ** (j + 1) for j in range(1, _TERMS + 1))  # (-1)^(j + 1)
+# the weights' sum and twice their tails, (S, 2 W_1, ..., 2 W_9): w times [1 | 2 [l >= j]]
+_DOUBLED = tuple((1.0, *(2.0 * v for v in row)) for row in _UPPER)
 
 
 # pi in parts: a head of 8 bits, a middle (float64: one part of 24 bits; float32: three of 8) and a
@@ -299,8 +301,8 @@ def _tails(xp: Any, w: Any) -> tuple[Any, Any]:
 def _log_density_series(xp: Any, omega: Any, at: _Concentration) -> Any:
     """``log f`` by the series, for ``eps >= 1/2``: ``log1p`` of its terms ``l >= 1`` (see
     :func:`_series_tails`; finite at 0)."""
-    ell, total, tails = at.ell, at.total, at.tails
-    return xp.log1p(total + 2.0 * xp.sum(tails * xp.cos(ell * omega[..., None]), axis=-1))
+    # sum_j T_j cos(j omega), j = 0 ... 9: T_0 = S, T_j = 2 W_j (_concentration)
+    return xp.log1p(xp.sum(at.tails * xp.cos(at.ell * omega[..., None]), axis=-1))
 
 
 def _score_dual(xp: Any, omega: Any, gap: Any, at: _Concentration) -> Any:
@@ -415,7 +417,9 @@ class _Concentration(NamedTuple):
     log_k: Any  # log(4 pi^2 / eps), of the dual's pair
     head: Any  # 0.5 log(pi) - 1.5 log(eps) + eps / 4, the dual's terms in eps (None for the score)
     four_eps: Any  # 4 eps (None for the score)
-    ell: Any  # the series' harmonics, weights' sum and tails (_series_tails)
+    # the series' harmonics, weights' sum and tails (_series_tails); for the log density the
+    # harmonics j = 0 ... 9 and the sum and twice the tails as one array, (S, 2 W_1, ..., 2 W_9)
+    ell: Any
     total: Any
     tails: Any
 
@@ -430,7 +434,15 @@ def _concentration(xp: Any, sigma: Any, density: bool = True, forms: Any = None)
         head = 0.5 * math.log(math.pi) - 1.5 * log_eps + 0.25 * eps
         four_eps = 4.0 * eps
     log_k = math.log(4.0 * math.pi * math.pi) - log_eps
-    return _Concentration(narrow, eps, log_k, head, four_eps, *_series_tails(xp, eps_series))
+    if not density:
+        return _Concentration(narrow, eps, log_k, head, four_eps, *_series_tails(xp, eps_series))
+    w = _series_weights(xp, eps_series)
+    if _eager(xp, w):
+        doubled = _kept(xp, _DOUBLED, w)
+    else:
+        doubled = xp.reshape(_constant(xp, [v for r in _DOUBLED for v in r], w, 1), (_TERMS, _TERMS + 1))
+    ell = _row(xp, (0.0, *_HARMONICS), eps, eps.ndim + 1)
+    return _Concentration(narrow, eps, log_k, head, four_eps, ell, None, xp.matmul(w, doubled))
 
 
 @op(angle=(), sigma=())
