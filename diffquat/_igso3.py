@@ -53,6 +53,8 @@ _SIZES = tuple(2.0 * j + 1.0 for j in _HARMONICS)  # 2 l + 1
 _RATES = tuple(-j * (j + 1.0) for j in _HARMONICS)  # -l (l + 1)
 _UPPER = tuple(tuple(1.0 if row >= col else 0.0 for col in range(_TERMS)) for row in range(_TERMS))
 _ODD = tuple((-1.0) ** (j + 1) for j in range(1, _TERMS + 1))  # (-1)^(j + 1)
+_EVEN = tuple(-v for v in _ODD)  # (-1)^j
+_SQUARES = tuple(j * j for j in _HARMONICS)  # j^2
 # the weights' sum and twice their tails, (S, 2 W_1, ..., 2 W_9): w times [1 | 2 [l >= j]]
 _DOUBLED = tuple((1.0, *(2.0 * v for v in row)) for row in _UPPER)
 
@@ -382,13 +384,14 @@ def _score_series(xp: Any, omega: Any, gap: Any, at: _Concentration) -> Any:
     theta = xp.where(reflect, gap[..., None], omega[..., None])
     one = _number(xp, 1.0, omega)
     odd = _row(xp, _ODD, omega, omega.ndim + 1)
+    even = _row(xp, _EVEN, omega, omega.ndim + 1)
     sines = xp.where(reflect, odd, one) * xp.sin(ell * theta)
-    cosines = xp.where(reflect, -odd, one) * xp.cos(ell * theta)
+    cosines = xp.where(reflect, even, one) * xp.cos(ell * theta)
     t = ell * omega[..., None]
     small = xp.abs(t) < 0.01
     ts = xp.where(small, one, t)
     sinc = xp.where(small, _polynomial(xp, _SINC, t * t), sines / ts)
-    slope = -2.0 * xp.sum(tails * (ell * ell) * sinc, axis=-1)
+    slope = -2.0 * xp.sum(tails * _row(xp, _SQUARES, omega, omega.ndim + 1) * sinc, axis=-1)
     return slope / (1.0 + total + 2.0 * xp.sum(tails * cosines, axis=-1))
 
 
@@ -527,7 +530,7 @@ def igso3_score(
     # in r^2 = s^2 / w^2 near the identity (there w >= |q| / sqrt(2) > 0), else omega itself over s
     small = squared < series_threshold(xp, squared.dtype) * (w * w)
     r2 = xp.where(small, squared / xp.where(small, w * w, one), zero)
-    series = (2.0 / xp.where(small, w, one)) * (1.0 - r2 / 3.0 + r2 * r2 / 5.0)
+    series = (2.0 / xp.where(small, w, one)) * _polynomial(xp, [1.0, -1.0 / 3.0, 0.2], r2)
     k = xp.where(small, series, omega / xp.where(small, one, s))
     omega, gap, sigma = match_rank(xp, omega, gap, sigma)
     at = _concentration(xp, sigma, density=False)
