@@ -796,10 +796,19 @@ def constants(xp: Any, like: Any, make: Callable[[], tuple[Any, ...]]) -> tuple[
         return tuple(xp.tensor(rows, dtype=_dtype(xp, rows, like), device=like.device) for rows in make())
     value = _CONSTANTS.get(key)
     if value is None:
-        value = _CONSTANTS[key] = tuple(
-            xp.tensor(rows, dtype=_dtype(xp, rows, like), device=like.device) for rows in make()
-        )
+        value = tuple(xp.tensor(rows, dtype=_dtype(xp, rows, like), device=like.device) for rows in make())
+        # Not kept when made inside a torch.func transform (grad, vjp, jacrev: a rule's second
+        # derivative): there torch.tensor returns a tensor wrapped at the transform's level, which a
+        # later call would meet outside it ("level <= current_level INTERNAL ASSERT FAILED").
+        if not _wrapped(xp, value[0]):
+            _CONSTANTS[key] = value
     return value
+
+
+def _wrapped(xp: Any, x: Any) -> bool:
+    """Whether ``x`` is a tensor of a torch.func transform's level (torch only)."""
+    functorch = getattr(getattr(xp, "_C", None), "_functorch", None)
+    return functorch is not None and bool(functorch.is_functorch_wrapped_tensor(x))
 
 
 def _dtype(xp: Any, rows: Any, like: Any) -> Any:
