@@ -30,7 +30,7 @@ from cases import (
     uniform_quaternions,
     value_batches,
 )
-from conftest import COMPILE_SPEED_FLAGS, Backend, case_rows
+from conftest import COMPILE_SPEED_FLAGS, Backend, case_rows, pad_rows
 
 WXYZ_TO_XYZW = [1, 2, 3, 0]
 XYZW_TO_WXYZ = [3, 0, 1, 2]
@@ -137,10 +137,11 @@ def test_values_in_half_precision(op: Op, backend: Backend, dtype: str) -> None:
         inputs = [
             op.to_scalar_last(x) if scalar_last and i in op.quaternion_args else x for i, x in enumerate(xs)
         ]
-        arrays = [backend.array(x, dtype) for x in inputs]
+        # jax at conftest.JAX_ROWS rows: its float32 primitives those of the other tests' calls
+        arrays = [backend.array(x, dtype) for x in (pad_rows(inputs) if backend.name == "jax" else inputs)]
         out = op(backend.module, *arrays, **({"scalar_first": False} if scalar_last else {}))
         assert out.dtype == arrays[0].dtype, "dtype not preserved"
-        outs[scalar_last] = backend.to_numpy(out)
+        outs[scalar_last] = backend.to_numpy(out)[: len(xs[0])]
     failures = []
     for case, rows, batch in parts:
         received = [x[rows].reshape(*batch, *x.shape[1:]) for x in xs]
@@ -338,8 +339,11 @@ def test_nonfinite_rows_give_nan_rows_and_leave_the_others(op: Op, backend: Back
     row's (the documented rule, the same on every backend and path: diffquat._backend.nonfinite_rows);
     the finite rows give what they give without their neighbours."""
     clean, poisoned, bad = poisoned_batch(op)
-    out = backend.to_numpy(op(backend.module, *(backend.array(x, dtype) for x in poisoned)))
-    expected = backend.to_numpy(op(backend.module, *(backend.array(x, dtype) for x in clean)))
+    n = len(clean[0])
+    if backend.name == "jax":  # at conftest.JAX_ROWS rows, the other rows dropped
+        clean, poisoned = pad_rows(clean), pad_rows(poisoned)
+    out = backend.to_numpy(op(backend.module, *(backend.array(x, dtype) for x in poisoned)))[:n]
+    expected = backend.to_numpy(op(backend.module, *(backend.array(x, dtype) for x in clean)))[:n]
     # Equal up to the rounding of the last bits: LAPACK (the SVD and eigh maps) rounds differently
     # depending on how its buffer is aligned; every other op gives the very same numbers.
     eps = float(np.finfo(np.float32 if dtype != "float64" else np.float64).eps)
@@ -485,7 +489,10 @@ def test_degenerate_inputs(op: Op, backend: Backend, dtype: str) -> None:
         for config in op.degenerate
     ]
     together = [np.concatenate(xs) for xs in zip(*received, strict=True)]
-    out = backend.to_numpy(op(backend.module, *(backend.array(x, dtype) for x in together)))
+    n = len(together[0])
+    if backend.name == "jax":  # at conftest.JAX_ROWS rows, the other rows dropped
+        together = pad_rows(together)
+    out = backend.to_numpy(op(backend.module, *(backend.array(x, dtype) for x in together)))[:n]
     failures, start = [], 0
     for config, xs in zip(op.degenerate, received, strict=True):
         rows = slice(start, start + len(xs[0]))
