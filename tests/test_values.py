@@ -461,6 +461,14 @@ def test_arguments_broadcast_pairwise(op: Op, backend: Backend) -> None:
     shape (5, 1) and the other (3,) (the rest (1, 1)) give the result at the arguments broadcast
     explicitly to (5, 3), to the last few bits (the same numbers, maybe summed in another order)."""
     xs, batched = _batched_args(op, (5, 3))
+    apply: Any = lambda *args: op(backend.module, *args)  # noqa: E731
+    if backend.name == "jax":
+        # Jitted: the broadcasting is decided from the static shapes, which jit traces as eager jax
+        # runs them, and eager jax compiles every primitive anew for each of the pairs' shapes (a
+        # large op's ~150 compilations per call, against one program).
+        import jax
+
+        apply = jax.jit(apply)
     failures = []
     for i, j in itertools.combinations(batched, 2):
         # the others of batch shape (1, 1): the pair alone decides the result's batch shape
@@ -468,11 +476,11 @@ def test_arguments_broadcast_pairwise(op: Op, backend: Backend) -> None:
         args[i], args[j] = xs[i][:, :1], xs[j][0]
         explicit = [np.array(np.broadcast_to(x, xs[k].shape)) for k, x in enumerate(args)]
         try:
-            out = backend.to_numpy(op(backend.module, *(backend.array(x, "float64") for x in args)))
+            out = backend.to_numpy(apply(*(backend.array(x, "float64") for x in args)))
         except Exception as error:  # the report names every pair that fails
             failures.append(f"arguments {i} (5, 1) and {j} (3,): {type(error).__name__}: {error}"[:300])
             continue
-        expected = backend.to_numpy(op(backend.module, *(backend.array(x, "float64") for x in explicit)))
+        expected = backend.to_numpy(apply(*(backend.array(x, "float64") for x in explicit)))
         if out.shape != expected.shape or not np.allclose(out, expected, rtol=1e-13, atol=1e-13):
             failures.append(f"arguments {i} and {j}: shape {out.shape}, expected {expected.shape}")
     assert not failures, "\n".join(failures)
