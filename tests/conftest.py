@@ -216,6 +216,29 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
     metafunc.parametrize(argnames, combos, ids=ids, indirect=["backend"])
 
 
+# Eager jax compiles every primitive anew for each (shape, dtype) it meets: a large op is ~150
+# compilations, 2-3 s, at a new batch length (against ~0.4 s to jit the whole op once), and the
+# suite's one-call-per-op batches had a length per op and test (528 and 190 rows for the values, 536
+# and 198 for the finite gradients, 11 ... 225 for the degenerate configurations, 4 ... 8 for the
+# non-finite rows). So those eager calls are padded to one length, JAX_ROWS (or a multiple): then an
+# op's float32 primitives compiled for one test (or one dtype: half precision computes in float32)
+# serve the next, and the elementwise ones (a product of (N, 4) arrays) serve every op. The padding
+# repeats the batch's own rows; rows are independent (tests/test_values.py checks it), the extra
+# rows' results are dropped, and no jax function chooses its path by the batch length.
+JAX_ROWS = 576
+
+
+def pad_rows(xs: list[np.ndarray], rows: int = JAX_ROWS) -> list[np.ndarray]:
+    """Each of ``xs`` (arrays of one batch dimension ``n = len(xs[0])`` first) with its rows repeated
+    cyclically to the least multiple of ``rows`` from ``n`` (an empty batch as it is); the caller keeps
+    the first ``n`` rows of the result."""
+    n = len(xs[0])
+    if n == 0:
+        return xs
+    total = -(-n // rows) * rows
+    return [np.take(x, np.arange(total) % n, axis=0) if np.ndim(x) and len(x) == n else x for x in xs]
+
+
 _ROWS: dict[tuple[Any, ...], dict[str, list[np.ndarray]]] = {}
 
 
@@ -258,8 +281,8 @@ def case_rows(
 ) -> list[np.ndarray]:
     """``fn`` on the backend arrays of ``inputs(case)`` (float64 arrays of the case's batch shape, cast
     to ``dtype``): its outputs (an array or a tuple of arrays of the same batch shape) as float64.
-    On jax from one call over all cases (:func:`rows_by_case`, ``key`` one per test); numpy and torch,
-    which compile nothing, evaluate each case as it is."""
+    On jax from one call over all cases (:func:`rows_by_case`, ``key`` one per test), padded to
+    :data:`JAX_ROWS` rows; numpy and torch, which compile nothing, evaluate each case as it is."""
 
     def call(xs: list[np.ndarray], batch: tuple[int, ...] | None = None) -> list[np.ndarray]:
         out = fn(*(backend.array(x, dtype) for x in xs))
@@ -267,6 +290,15 @@ def case_rows(
 
     if backend.name != "jax":
         return call(inputs(case))
+
+    def call_padded(xs: list[np.ndarray], batch: tuple[int, ...]) -> list[np.ndarray]:
+        return [o[: len(xs[0])] for o in call(pad_rows(xs))]
+
+    # the one call over the cases at JAX_ROWS rows; a batch_* case at its own shape
     return rows_by_case(
-        (key, backend.name, dtype), case, lambda c: c.quaternions(dtype).shape[:-1], inputs, call
+        (key, backend.name, dtype),
+        case,
+        lambda c: c.quaternions(dtype).shape[:-1],
+        inputs,
+        call if case.name.startswith("batch_") else call_padded,
     )

@@ -263,10 +263,8 @@ def check_second_order(
 HEADS = [r for r in tnn.REPRESENTATIONS if r != "fisher"]
 
 
-@pytest.mark.parametrize("representation", HEADS)
-def test_torch_heads_under_jvp_jacfwd_and_hessian(representation: str) -> None:
-    """Eager; then compiled (``fullgraph=True``), every row's Jacobian in forward mode and the Hessian,
-    equal to eager."""
+def _torch_head(representation: str) -> tuple[np.ndarray, Any, Any, Any, torch.Tensor, torch.Tensor]:
+    """The head's raw inputs, its smooth rows, the head, a weighted loss of it, and x and t as tensors."""
     raw, smooth, weights = head_inputs(representation)
     w = torch.tensor(weights)
 
@@ -276,39 +274,35 @@ def test_torch_heads_under_jvp_jacfwd_and_hessian(representation: str) -> None:
     def loss(r: torch.Tensor) -> torch.Tensor:
         return (head(r) * w).sum()
 
-    x = torch.tensor(raw)
-    t = torch.tensor(directions([raw], seed=1)[0])
+    return raw, smooth, head, loss, torch.tensor(raw), torch.tensor(directions([raw], seed=1)[0])
 
-    (basis,) = basis_tangents((x,))
 
-    def transforms(x: torch.Tensor, compiled: bool = False) -> dict[str, Any]:
-        tf = torch.func
-        if compiled:
-            # forward mode as in test_torch_compiled_forward_mode_equals_eager: vmap over jvp along
-            # each component, every row's Jacobian in one transform (jvp and jacfwd compiled apart:
-            # 25 s for the 10D head, against 10 s)
-            return {
-                "columns": tf.vmap(lambda b: tf.jvp(head, (x,), (b,))[1])(basis),
-                "hessian": tf.hessian(loss)(x),  # jacfwd(jacrev)
-            }
-        out = {
-            "jvp": tf.jvp(head, (x,), (t,))[1],
-            "jacfwd": tf.jacfwd(head)(x),
-            "hessian": tf.hessian(loss)(x),  # jacfwd(jacrev)
-        }
-        if not compiled:
-            # Eager only: torch 2.13 cannot compile forward over forward mode at all (for
-            # ``(torch.sin(x) * 1e-3).sum()`` too: "InferenceMode::is_enabled() && self.is_inference()
-            # INTERNAL ASSERT FAILED" in Dynamo's fake-tensor pass). The two reverse-mode second
-            # orders eager only too: compiled, they are the graphs test_transforms.py and
-            # test_capture.py compile already, differentiated once more, and tracing them doubled
-            # the cost of this test (the 10D head's took 60 s).
-            out["jacfwd(jacfwd)"] = tf.jacfwd(tf.jacfwd(loss))(x)
-            out["jacrev(jacfwd)"] = tf.jacrev(tf.jacfwd(loss))(x)
-            out["jacrev(jacrev)"] = tf.jacrev(tf.jacrev(loss))(x)
-        return out
+def _torch_head_transforms(head: Any, loss: Any, x: torch.Tensor, t: torch.Tensor) -> dict[str, Any]:
+    """Eager forward mode and the Hessian: what the compiled transforms are compared with."""
+    tf = torch.func
+    return {
+        "jvp": tf.jvp(head, (x,), (t,))[1],
+        "jacfwd": tf.jacfwd(head)(x),
+        "hessian": tf.hessian(loss)(x),  # jacfwd(jacrev)
+    }
 
-    eager = transforms(x)
+
+@pytest.mark.parametrize("representation", HEADS)
+def test_torch_heads_under_jvp_jacfwd_and_hessian(representation: str) -> None:
+    """Eager: every row's Jacobian in forward mode, and the Hessian in every order of the two modes.
+    (Compiled: the test below.)"""
+    raw, smooth, head, loss, x, t = _torch_head(representation)
+    tf = torch.func
+    eager = _torch_head_transforms(head, loss, x, t)
+    # Eager only: torch 2.13 cannot compile forward over forward mode at all (for
+    # ``(torch.sin(x) * 1e-3).sum()`` too: "InferenceMode::is_enabled() && self.is_inference()
+    # INTERNAL ASSERT FAILED" in Dynamo's fake-tensor pass). The two reverse-mode second
+    # orders eager only too: compiled, they are the graphs test_transforms.py and
+    # test_capture.py compile already, differentiated once more, and tracing them doubled
+    # the cost of this test (the 10D head's took 60 s).
+    eager["jacfwd(jacfwd)"] = tf.jacfwd(tf.jacfwd(loss))(x)
+    eager["jacrev(jacfwd)"] = tf.jacrev(tf.jacfwd(loss))(x)
+    eager["jacrev(jacrev)"] = tf.jacrev(tf.jacrev(loss))(x)
     check_tangent(
         eager["jvp"],
         lambda moved: head(torch.tensor(moved[0])).numpy(),
@@ -327,9 +321,32 @@ def test_torch_heads_under_jvp_jacfwd_and_hessian(representation: str) -> None:
         raw,
         smooth,
     )
+
+
+@pytest.mark.parametrize("representation", HEADS)
+def test_torch_heads_compiled_under_jvp_and_hessian(representation: str) -> None:
+    """Compiled (``fullgraph=True``), every row's Jacobian in forward mode and the Hessian, equal to
+    eager. (A test of its own, named for the compiler, so the quick tier leaves it out with the other
+    compiled checks: conftest.SLOW_NAMES. Within the eager test it was most of the quick tier's
+    largest torch item.)"""
+    raw, _, head, loss, x, t = _torch_head(representation)
+    (basis,) = basis_tangents((x,))
+    eager = _torch_head_transforms(head, loss, x, t)
+    b, n = raw.shape
+    diag = torch.arange(b)
+    jac = eager["jacfwd"].reshape(b, 9, b, n)[diag, :, diag]
+
+    def transforms(x: torch.Tensor) -> dict[str, Any]:
+        # forward mode as in test_torch_compiled_forward_mode_equals_eager: vmap over jvp along
+        # each component, every row's Jacobian in one transform (jvp and jacfwd compiled apart:
+        # 25 s for the 10D head, against 10 s)
+        return {
+            "columns": torch.func.vmap(lambda b: torch.func.jvp(head, (x,), (b,))[1])(basis),
+            "hessian": torch.func.hessian(loss)(x),  # jacfwd(jacrev)
+        }
+
     torch._dynamo.reset()
-    compiled = torch.compile(transforms, backend=COMPILE_BACKEND, fullgraph=True, dynamic=False)
-    compiled = compiled(x, compiled=True)
+    compiled = torch.compile(transforms, backend=COMPILE_BACKEND, fullgraph=True, dynamic=False)(x)
     # each row's Jacobian (b, 9, n), from the columns (n, b, 3, 3); its contraction with t is the jvp
     columns = compiled.pop("columns").reshape(n, b, 9).permute(1, 2, 0)
     assert bool(torch.all(torch.isfinite(columns)))
