@@ -585,6 +585,9 @@ _GL_NODES, _GL_WEIGHTS = (
     tuple(float(v) for v in 0.5 * (part + 1.0)) if i == 0 else tuple(float(v) for v in 0.5 * part)
     for i, part in enumerate(np.polynomial.legendre.leggauss(16))
 )
+# half the weights: the bracket of _cdf_dual takes sqrt(eps) / 2 times the integral (a power of two, so
+# the same values to the bit as halving the product), in one operation fewer
+_GL_HALF_WEIGHTS = tuple(0.5 * w for w in _GL_WEIGHTS)
 _CDF_HARMONICS = tuple(float(k) for k in range(1, _TERMS + 2))  # sin(k omega), k = 1 ... 10
 # (t / 2)^2 at the nodes t, so that the integrand's e^(d^2 t^2) is e^(eps (t / 2)^2)
 _GL_QUARTER_SQUARES = tuple(0.25 * t * t for t in _GL_NODES)
@@ -604,10 +607,9 @@ class _CdfConcentration(NamedTuple):
     three parts, the series' coefficients over its harmonics."""
 
     narrow: Any  # where the dual form applies (see _forms)
-    half_root: Any  # sqrt(eps) / 2
     root: Any  # sqrt(eps)
     quarter: Any  # e^(eps / 4)
-    weights: Any  # the quadrature's weights times e^(eps t^2 / 4) at its nodes t, (..., 1, 16)
+    weights: Any  # half the quadrature's weights times e^(eps t^2 / 4) at its nodes t, (..., 1, 16)
     ell: Any  # the series' harmonics l = 1 ... 10 and their coefficients (see _cdf_series)
     coefficients: Any
     # for the density beside the CDF (_cdf_and_density; else None): 2 e^(eps / 4) / (sqrt(pi) eps),
@@ -624,7 +626,7 @@ def _cdf_concentration(xp: Any, sigma: Any, forms: Any = None, density: bool = F
     e = eps[..., None]
     root = xp.sqrt(e)
     growth = xp.exp(e[..., None] * _row(xp, _GL_QUARTER_SQUARES, e, e.ndim + 1))
-    weights = _row(xp, _GL_WEIGHTS, e, e.ndim + 1) * growth
+    weights = _row(xp, _GL_HALF_WEIGHTS, e, e.ndim + 1) * growth
     ell = _row(xp, _CDF_HARMONICS, eps, eps.ndim + 1)
     w = _series_weights(xp, eps_series)
     if _eager(xp, w) and w.ndim == 2:
@@ -642,9 +644,7 @@ def _cdf_concentration(xp: Any, sigma: Any, forms: Any = None, density: bool = F
         scale = quarter / ((0.5 * math.sqrt(math.pi)) * e)
         total, tails = _tails(xp, w)
         tails = xp.concat([tails, xp.zeros_like(w[..., :1])], axis=-1)
-    return _CdfConcentration(
-        narrow, 0.5 * root, root, quarter, weights, ell, coefficients, scale, total, tails
-    )
+    return _CdfConcentration(narrow, root, quarter, weights, ell, coefficients, scale, total, tails)
 
 
 def _cdf_dual(xp: Any, omega: Any, at: _CdfConcentration) -> tuple[Any, Any, Any, Any]:
@@ -675,7 +675,7 @@ def _cdf_dual(xp: Any, omega: Any, at: _CdfConcentration) -> tuple[Any, Any, Any
     # (e^(eps / 4) sin(a)) / sqrt(eps) in this order: its derivative at u = 0 then cancels that of erf
     # exactly (both ~1 / sqrt(eps)), and F's derivative at the identity is 0
     sines = xp.sin(a)
-    bracket = at.half_root * integral - at.quarter * sines / at.root
+    bracket = at.root * integral - at.quarter * sines / at.root
     gauss = xp.exp(-(x * x))
     p = _erf(xp, x) + (2.0 / math.sqrt(math.pi)) * gauss * bracket
     p0, p1, p2 = _parts(xp, p)
