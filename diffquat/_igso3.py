@@ -209,6 +209,15 @@ def _number(xp: Any, value: float, like: Any) -> Any:
     return _kept(xp, value, like) if _eager(xp, like) else value
 
 
+def _fill(xp: Any, where: Any, value: float, x: Any) -> Any:
+    """``value`` where ``where``, else ``x`` (``where`` broadcasting to ``x``'s shape): in eager torch
+    ``masked_fill``, whose backward is one operation (``where``'s makes a zero of its own first: a
+    ``scalar_tensor`` per differentiated call), else a ``where``."""
+    if _eager(xp, x):
+        return x.masked_fill(where, value)
+    return xp.where(where, _number(xp, value, x), x)
+
+
 def _row(xp: Any, values: tuple[float, ...], like: Any, rank: int) -> Any:
     """A constant 1-D array of ``like``'s dtype and device over a trailing axis of an array of rank
     ``rank``: kept in eager torch (which broadcasts it over the leading axes), else ``_constant``."""
@@ -233,9 +242,9 @@ def _polynomial(xp: Any, coefficients: list[float], z: Any) -> Any:
 
 def _log_h_over_sin_h(xp: Any, h: Any) -> Any:
     """``log(h / sin h)`` for ``|h| <= pi / 2`` (its series below 0.1, see ``_LOG_H_OVER_SIN_H``)."""
-    small = xp.abs(h) < 0.1
-    hs = xp.where(small, _number(xp, 1.0, h), h)
     h2 = h * h
+    small = h2 < 0.01  # |h| < 0.1, on the square the series takes (one operation fewer than abs)
+    hs = _fill(xp, small, 1.0, h)
     return xp.where(small, h2 * _polynomial(xp, _LOG_H_OVER_SIN_H, h2), xp.log(hs / xp.sin(hs)))
 
 
@@ -261,7 +270,7 @@ def _dual_pair(xp: Any, w: Any, gap: Any, at: _Concentration) -> tuple[Any, Any,
     eps = at.eps
     x = (2.0 * math.pi) * w / eps
     near = x < 1e-3
-    xs = xp.where(near, _number(xp, 1.0, x), x)
+    xs = _fill(xp, near, 1.0, x)
     log_ratio = xp.where(
         near,
         xp.log(_polynomial(xp, _ONE_MINUS_EXP_OVER, xp.where(near, x, _number(xp, 0.0, x)))),
@@ -269,8 +278,8 @@ def _dual_pair(xp: Any, w: Any, gap: Any, at: _Concentration) -> tuple[Any, Any,
     )
     log_ka = at.log_k + log_ratio  # log((4 pi^2 / eps) (1 - e^-x) / x)
     log_a = log_ka + xp.log1p(-xp.exp(-log_ka))
-    c = math.pi * (math.pi + w) / eps
-    return x, log_ratio, xp.logaddexp(xp.log1p(-xp.exp(-c)), log_a - math.pi * gap / eps)
+    minus_c = -math.pi * (math.pi + w) / eps  # -c itself (the negated constant is exact)
+    return x, log_ratio, xp.logaddexp(xp.log1p(-xp.exp(minus_c)), log_a - math.pi * gap / eps)
 
 
 def _series_tails(xp: Any, eps: Any) -> tuple[Any, Any, Any]:
@@ -318,22 +327,24 @@ def _score_dual(xp: Any, omega: Any, gap: Any, at: _Concentration) -> Any:
     eps = at.eps
     x, log_ratio, log_t = _dual_pair(xp, omega, gap, at)  # omega >= 0 here
     near = x < 0.01
-    xs = xp.where(near, _number(xp, 1.0, x), x)
+    xs = _fill(xp, near, 1.0, x)
+    minus = -xs
     psi2 = xp.where(
         near,
         _polynomial(xp, _PSI2, xp.where(near, x, _number(xp, 0.0, x))),
-        (xs * (1.0 + xp.exp(-xs)) + 2.0 * xp.expm1(-xs)) / (xs * xs * xs),
+        (xs * (1.0 + xp.exp(minus)) + 2.0 * xp.expm1(minus)) / (xs * xs * xs),
     )
     # 2 pi^2 / eps^2 as a product, not inside the exp: an exponent of size ~40 would carry ~40 ulps
     # into a term that near pi cancels against -omega / (2 eps) (both ~pi / sigma^2)
     weight = (2.0 * math.pi**2) / (eps * eps) * xp.exp(-math.pi * gap / eps - log_t)
     pair = weight * ((4.0 * math.pi**2) * psi2 / eps - xp.exp(log_ratio))
     h = 0.5 * omega
-    small = xp.abs(h) < 0.1
-    hs = xp.where(small, _number(xp, 1.0, h), h)
+    h2 = h * h
+    small = h2 < 0.01  # |h| < 0.1, as in _log_h_over_sin_h
+    hs = _fill(xp, small, 1.0, h)
     sine = xp.where(
         small,
-        _polynomial(xp, _LOG_H_OVER_SIN_H_SLOPE, h * h),
+        _polynomial(xp, _LOG_H_OVER_SIN_H_SLOPE, h2),
         (1.0 / hs - xp.cos(hs) / xp.sin(hs)) / (4.0 * hs),
     )
     # Beyond pi / 2 the form about pi: here -1 / (2 eps) and the pair cancel to the score's size,
@@ -388,9 +399,10 @@ def _score_series(xp: Any, omega: Any, gap: Any, at: _Concentration) -> Any:
     sines = xp.where(reflect, odd, one) * xp.sin(ell * theta)
     cosines = xp.where(reflect, even, one) * xp.cos(ell * theta)
     t = ell * omega[..., None]
-    small = xp.abs(t) < 0.01
-    ts = xp.where(small, one, t)
-    sinc = xp.where(small, _polynomial(xp, _SINC, t * t), sines / ts)
+    t2 = t * t
+    small = t2 < 1e-4  # |t| < 0.01, on the square the series takes
+    ts = _fill(xp, small, 1.0, t)
+    sinc = xp.where(small, _polynomial(xp, _SINC, t2), sines / ts)
     slope = -2.0 * xp.sum(tails * _row(xp, _SQUARES, omega, omega.ndim + 1) * sinc, axis=-1)
     return slope / (1.0 + total + 2.0 * xp.sum(tails * cosines, axis=-1))
 
@@ -405,8 +417,8 @@ def _forms(xp: Any, sigma: Any) -> tuple[Any, Any, Any]:
     switch = _number(xp, _SWITCH, eps)
     return (
         narrow,
-        xp.where(narrow, xp.where(eps < smallest, _number(xp, smallest, eps), eps), switch),
-        xp.where(narrow, switch, eps),
+        xp.where(narrow, _fill(xp, eps < smallest, smallest, eps), switch),
+        _fill(xp, narrow, _SWITCH, eps),
     )
 
 
@@ -434,7 +446,8 @@ def _concentration(xp: Any, sigma: Any, density: bool = True, forms: Any = None)
     log_eps = xp.log(eps)
     head = four_eps = None
     if density:
-        head = 0.5 * math.log(math.pi) - 1.5 * log_eps + 0.25 * eps
+        # 0.5 log(pi) - 1.5 log(eps) + eps / 4, the same roundings in one operation fewer in eager torch
+        head = _less_multiple(xp, -1.5 * log_eps + 0.5 * math.log(math.pi), eps, -0.25)
         four_eps = 4.0 * eps
     log_k = math.log(4.0 * math.pi * math.pi) - log_eps
     if not density:
@@ -531,7 +544,7 @@ def igso3_score(
     small = squared < series_threshold(xp, squared.dtype) * (w * w)
     r2 = xp.where(small, squared / xp.where(small, w * w, one), zero)
     series = (2.0 / xp.where(small, w, one)) * _polynomial(xp, [1.0, -1.0 / 3.0, 0.2], r2)
-    k = xp.where(small, series, omega / xp.where(small, one, s))
+    k = xp.where(small, series, omega / _fill(xp, small, 1.0, s))
     omega, gap, sigma = match_rank(xp, omega, gap, sigma)
     at = _concentration(xp, sigma, density=False)
     factor = xp.where(at.narrow, _score_dual(xp, omega, gap, at), _score_series(xp, omega, gap, at))
@@ -572,6 +585,9 @@ _GL_NODES, _GL_WEIGHTS = (
     tuple(float(v) for v in 0.5 * (part + 1.0)) if i == 0 else tuple(float(v) for v in 0.5 * part)
     for i, part in enumerate(np.polynomial.legendre.leggauss(16))
 )
+# half the weights: the bracket of _cdf_dual takes sqrt(eps) / 2 times the integral (a power of two, so
+# the same values to the bit as halving the product), in one operation fewer
+_GL_HALF_WEIGHTS = tuple(0.5 * w for w in _GL_WEIGHTS)
 _CDF_HARMONICS = tuple(float(k) for k in range(1, _TERMS + 2))  # sin(k omega), k = 1 ... 10
 # (t / 2)^2 at the nodes t, so that the integrand's e^(d^2 t^2) is e^(eps (t / 2)^2)
 _GL_QUARTER_SQUARES = tuple(0.25 * t * t for t in _GL_NODES)
@@ -591,10 +607,9 @@ class _CdfConcentration(NamedTuple):
     three parts, the series' coefficients over its harmonics."""
 
     narrow: Any  # where the dual form applies (see _forms)
-    half_root: Any  # sqrt(eps) / 2
     root: Any  # sqrt(eps)
     quarter: Any  # e^(eps / 4)
-    weights: Any  # the quadrature's weights times e^(eps t^2 / 4) at its nodes t, (..., 1, 16)
+    weights: Any  # half the quadrature's weights times e^(eps t^2 / 4) at its nodes t, (..., 1, 16)
     ell: Any  # the series' harmonics l = 1 ... 10 and their coefficients (see _cdf_series)
     coefficients: Any
     # for the density beside the CDF (_cdf_and_density; else None): 2 e^(eps / 4) / (sqrt(pi) eps),
@@ -611,7 +626,7 @@ def _cdf_concentration(xp: Any, sigma: Any, forms: Any = None, density: bool = F
     e = eps[..., None]
     root = xp.sqrt(e)
     growth = xp.exp(e[..., None] * _row(xp, _GL_QUARTER_SQUARES, e, e.ndim + 1))
-    weights = _row(xp, _GL_WEIGHTS, e, e.ndim + 1) * growth
+    weights = _row(xp, _GL_HALF_WEIGHTS, e, e.ndim + 1) * growth
     ell = _row(xp, _CDF_HARMONICS, eps, eps.ndim + 1)
     w = _series_weights(xp, eps_series)
     if _eager(xp, w) and w.ndim == 2:
@@ -629,9 +644,7 @@ def _cdf_concentration(xp: Any, sigma: Any, forms: Any = None, density: bool = F
         scale = quarter / ((0.5 * math.sqrt(math.pi)) * e)
         total, tails = _tails(xp, w)
         tails = xp.concat([tails, xp.zeros_like(w[..., :1])], axis=-1)
-    return _CdfConcentration(
-        narrow, 0.5 * root, root, quarter, weights, ell, coefficients, scale, total, tails
-    )
+    return _CdfConcentration(narrow, root, quarter, weights, ell, coefficients, scale, total, tails)
 
 
 def _cdf_dual(xp: Any, omega: Any, at: _CdfConcentration) -> tuple[Any, Any, Any, Any]:
@@ -662,7 +675,7 @@ def _cdf_dual(xp: Any, omega: Any, at: _CdfConcentration) -> tuple[Any, Any, Any
     # (e^(eps / 4) sin(a)) / sqrt(eps) in this order: its derivative at u = 0 then cancels that of erf
     # exactly (both ~1 / sqrt(eps)), and F's derivative at the identity is 0
     sines = xp.sin(a)
-    bracket = at.half_root * integral - at.quarter * sines / at.root
+    bracket = at.root * integral - at.quarter * sines / at.root
     gauss = xp.exp(-(x * x))
     p = _erf(xp, x) + (2.0 / math.sqrt(math.pi)) * gauss * bracket
     p0, p1, p2 = _parts(xp, p)
@@ -707,7 +720,7 @@ def _cdf_and_density(xp: Any, omega: Any, at: _CdfConcentration) -> tuple[Any, A
     density_series = f * (2.0 / math.pi) * (half * half)
     cdf = xp.where(at.narrow, cdf_dual, cdf_series)
     # 1 exactly from pi on, as igso3_angle_cdf
-    cdf = xp.where(omega >= math.pi, _number(xp, 1.0, cdf), cdf)
+    cdf = _fill(xp, omega >= math.pi, 1.0, cdf)
     return cdf, xp.where(at.narrow, density_dual, density_series)
 
 
@@ -736,10 +749,10 @@ def _angle_cdf_at(xp: Any, angle: Any, at: _CdfConcentration) -> Any:
     # selections, so that the derivative is 0 outside [0, pi] (and F exact at the ends)
     # (pi itself from pi on: F is 1 there, below)
     top = angle >= math.pi
-    omega = xp.where(angle < 0.0, _number(xp, 0.0, angle), xp.where(top, _number(xp, math.pi, angle), angle))
+    omega = _fill(xp, angle < 0.0, 0.0, _fill(xp, top, math.pi, angle))
     cdf = xp.where(at.narrow, _cdf_dual(xp, omega, at)[0], _cdf_series(xp, omega, at)[0])
     # 1 exactly from pi as the dtype rounds it (float32's is pi + 8.7e-8, where the forms give 1 - ulp)
-    return xp.where(top, _number(xp, 1.0, cdf), cdf)
+    return _fill(xp, top, 1.0, cdf)
 
 
 # Steps of the angle's inversion (see _angle_quantile): from its start, 12 bring every (sigma, u) of a
@@ -763,7 +776,7 @@ def _quantile_start(xp: Any, u: Any, sigma: Any, at: _Concentration) -> Any:
     neither beyond 2.31, the uniform distribution's median angle."""
     f0 = xp.exp(_log_density_at(xp, 0.0 * sigma, at, True))
     low = xp.exp((xp.log(6.0 * math.pi * u) - xp.log(f0)) / 3.0)
-    top = -2.0 * xp.log1p(-xp.where(u < 0.5, _number(xp, 0.5, u), u))
+    top = -2.0 * xp.log1p(-_fill(xp, u < 0.5, 0.5, u))
     z0 = xp.sqrt(top)
     z = xp.sqrt(top + 2.0 * xp.log(math.sqrt(2.0 / math.pi) * (z0 + 1.0 / z0)))
     start = xp.where(u < 0.5, low, sigma * z)
