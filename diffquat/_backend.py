@@ -24,14 +24,18 @@ The rules, the same on every backend:
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Hashable
+from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
 from . import _core
 from ._core import SHAPES
 
 F = TypeVar("F", bound=Callable[..., Any])
+
+# How many passing signatures a Backend remembers (Backend.validate) before it forgets them all: a
+# bound for programs whose batch shapes never repeat.
+_REMEMBERED = 4096
 
 
 def format_shape(trailing: tuple[int, ...]) -> str:
@@ -100,19 +104,18 @@ def nonfinite_rows(xp: Any, out: Any, arrays: list[tuple[Any, tuple[int, ...]]])
     good rows, NaN or 0 on the bad ones. Two or three operations per input in eager torch (a product,
     a sum, the addition; a view where the trailing ranks differ), where a selection took nine
     (``isfinite``'s four, the NaN constant, the mask's view, the ``where``)."""
-    acc = None
+    drop = getattr(xp, "detach", None) or getattr(xp, "stop_gradient", None)  # _core.cancelling_factor
     batch_rank = 0
     for x, trailing in arrays:
         batch_rank = max(batch_rank, x.ndim - len(trailing))
     out_trailing = out.ndim - batch_rank
+    acc = None
     for x, trailing in arrays:
         # _core.zero_or_nan, its sum kept as unit axes where the trailing ranks agree
-        z = _core.cancelling_factor(xp, x) * 0.0
-        axes = tuple(range(-len(trailing), 0))
-        if len(trailing) == out_trailing:
-            z = xp.sum(z, axis=axes, keepdims=True) if trailing else z
-        else:
-            z = xp.sum(z, axis=axes) if trailing else z
+        z = (x if drop is None else drop(x)) * 0.0
+        if trailing:
+            z = xp.sum(z, axis=tuple(range(-len(trailing), 0)), keepdims=len(trailing) == out_trailing)
+        if len(trailing) != out_trailing:
             z = xp.reshape(z, tuple(z.shape) + (1,) * out_trailing)
         if acc is None:
             acc = z
@@ -141,12 +144,17 @@ class Backend:
             the array ``like`` (or None).
         float32: the backend's float32 dtype, the compute dtype of half-precision input.
         guard: a context manager around every computation (torch: autocast off, so that the core
-            computes in the dtype chosen here, not in the autocast dtype).
+            computes in the dtype chosen here, not in the autocast dtype), or None where the call
+            needs none (torch outside autocast: no context entered, per call).
         static: a context manager around the checks of shapes (torch: under ``torch.jit.trace``
             sizes are traced tensors, and each comparison of one warns that it is read as a constant,
             which for these checks is what is meant).
         choose: ``(core_fn, first input) -> the function to run``: torch runs a map's eager form
             (``_core.EAGER_FORMS``) outside graph capture; the others run the core function.
+        signature: ``(fname, arguments)`` -> what decides the outcome of their validation (each
+            argument's type, shape and dtype), or None where it is not to be remembered (torch: under
+            graph capture, whose sizes may be symbolic and whose Python is traced, and for any
+            argument that is not a tensor, None or a Python number). See :meth:`validate`.
     """
 
     xp: Any
@@ -158,9 +166,12 @@ class Backend:
     astype: Callable[[Any, Any], Any]
     scalar: Callable[[float, Any, Any], Any]
     float32: Any
-    guard: Callable[[Any], contextlib.AbstractContextManager[Any]] = lambda x: contextlib.nullcontext()
+    guard: Callable[[Any], contextlib.AbstractContextManager[Any] | None] = lambda x: None
     static: Callable[[], contextlib.AbstractContextManager[Any]] = contextlib.nullcontext
     choose: Callable[[Callable[..., Any], Any], Callable[..., Any]] = lambda fn, x: fn
+    signature: Callable[[str, tuple[Any, ...]], Hashable | None] = lambda fname, arrays: None
+    # signature -> the promoted dtype, of the calls that passed validation (see validate)
+    _passed: dict[Hashable, Any] = field(default_factory=dict, compare=False, repr=False)
 
     def compute_dtype(self, dtype: Any) -> Any:
         # float16 and bfloat16 (and anything narrower) are computed in float32: the epsilons and
@@ -170,9 +181,36 @@ class Backend:
     def validate(self, fname: str, *arrays: Any) -> tuple[list[Any], Any]:
         """Convert and check every array argument of core function ``fname`` against ``SHAPES``, and
         cast them to their promoted dtype, which is returned beside them. An optional array argument
-        passed as ``None`` stays ``None``."""
+        passed as ``None`` stays ``None``.
+
+        The outcome of the checks is a function of the arguments' :attr:`signature` (types, shapes,
+        dtypes): a signature that passed once passes again with the same promoted dtype, so an eager
+        call whose signature has passed before skips them (a dictionary look-up in place of ~10 µs of
+        Python per call at small N). Only passing signatures are remembered, so every bad argument
+        still meets the checks and raises their error; and only those with a floating array, whose
+        promotion reads no global state (integer arguments alone promote to torch's default dtype,
+        which the user may change)."""
+        key = self.signature(fname, arrays)
+        if key is not None:
+            try:
+                dtype = self._passed.get(key)
+            except TypeError:  # a symbolic size (torch.fx, non-strict export) has no hash
+                dtype = key = None
+            if dtype is not None:
+                if len(arrays) == 1:  # the common case: one array, already a floating one
+                    (x,) = arrays
+                    return [x if x.dtype == dtype else self.astype(x, dtype)], dtype
+                present = [x for x in arrays if x is not None]
+                return [None if x is None else self.array_of(x, dtype, like=present) for x in arrays], dtype
         with self.static():
-            return self._validate(fname, arrays)
+            checked, dtype = self._validate(fname, arrays)
+        if key is not None and any(
+            x is not None and not isinstance(x, int | float) and self.is_floating(x.dtype) for x in arrays
+        ):
+            if len(self._passed) >= _REMEMBERED:  # many shapes (varying batches): start again
+                self._passed.clear()
+            self._passed[key] = dtype
+        return checked, dtype
 
     def _validate(self, fname: str, arrays: tuple[Any, ...]) -> tuple[list[Any], Any]:
         registry = SHAPES[fname]
@@ -231,23 +269,41 @@ class Backend:
         fname = core_fn.__name__
         checked, dtype = self.validate(fname, *arrays)
         compute = self.compute_dtype(dtype)
-        inputs = [x if x is None or x.dtype == compute else self.astype(x, compute) for x in checked]
-        with self.guard(inputs[0]):
-            chosen = self.choose(core_fn, inputs[0])
-            out = chosen(self.xp, *inputs, **options)
-            # an eager form may make non-finite rows NaN by its arithmetic where the core function
-            # does not (registered by its own name)
-            if (
-                fname not in _core.NONFINITE_BY_ARITHMETIC
-                and chosen.__name__ not in _core.NONFINITE_BY_ARITHMETIC
-            ):
+        # every checked array is of the promoted dtype: all of them or none are cast
+        inputs = checked
+        if compute != dtype:
+            inputs = [None if x is None else self.astype(x, compute) for x in checked]
+        guard = self.guard(inputs[0])
+        if guard is None:
+            return self._run(core_fn, fname, inputs, dtype, compute, options)
+        with guard:
+            return self._run(core_fn, fname, inputs, dtype, compute, options)
+
+    def _run(
+        self,
+        core_fn: Callable[..., Any],
+        fname: str,
+        inputs: list[Any],
+        dtype: Any,
+        compute: Any,
+        options: dict[str, Any],
+    ) -> Any:
+        chosen = self.choose(core_fn, inputs[0])
+        out = chosen(self.xp, *inputs, **options)
+        # an eager form may make non-finite rows NaN by its arithmetic where the core function
+        # does not (registered by its own name)
+        by_arithmetic = _core.NONFINITE_BY_ARITHMETIC
+        if fname not in by_arithmetic and chosen.__name__ not in by_arithmetic:
+            if len(inputs) == 1:
+                rows = [(inputs[0], next(iter(SHAPES[fname].values())))]
+            else:
                 rows = [(x, t) for x, t in zip(inputs, SHAPES[fname].values(), strict=True) if x is not None]
-                out = nonfinite_rows(self.xp, out, rows)
-            if compute == dtype:
-                return out
-            if fname in _core.CANONICAL:
-                return self.cast_canonical(out, dtype, options.get("scalar_first", True))
-            return self.astype(out, dtype)
+            out = nonfinite_rows(self.xp, out, rows)
+        if compute == dtype:
+            return out
+        if fname in _core.CANONICAL:
+            return self.cast_canonical(out, dtype, options.get("scalar_first", True))
+        return self.astype(out, dtype)
 
     def cast_canonical(self, q: Any, dtype: Any, scalar_first: bool) -> Any:
         """Cast a canonical quaternion to ``dtype``, keeping it canonical: narrowing can round a tiny

@@ -170,7 +170,10 @@ def cancelling_factor(xp: Any, x: Any) -> Any:
     practice; dropping them saves the backward of the scale: the maximum, the absolute values and a
     division of the cotangent (docs/performance.md, Formula shapes). ``stop_gradient`` on the jax
     backend's namespace, ``torch.detach`` on torch, the identity on NumPy."""
-    drop = getattr(xp, "stop_gradient", None) or getattr(xp, "detach", None)
+    # torch's name first: a missing attribute of the torch module costs 0.8 us (its module __getattr__),
+    # a found one 0.1 us, on every eager call (see small_matmul); neither jax's namespace nor NumPy has
+    # a ``detach``
+    drop = getattr(xp, "detach", None) or getattr(xp, "stop_gradient", None)
     return x if drop is None else drop(x)
 
 

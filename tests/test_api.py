@@ -356,3 +356,31 @@ def test_the_design_pages_layout_is_the_tree() -> None:
         assert (root / path).exists(), f"docs/design.md lists {path}, which is not in the tree"
     modules = {str(p.relative_to(root)) for p in (root / "diffquat").rglob("*.py")}
     assert modules <= listed, f"missing from docs/design.md's layout: {sorted(modules - listed)}"
+
+
+def test_a_remembered_signature_leaves_every_other_call_checked() -> None:
+    """Eager torch calls skip the checks of an argument signature (shapes, dtypes) that passed before
+    (``Backend.validate``): a bad call after good ones of the same function still raises its error,
+    and integer arguments alone follow torch's default dtype at the time of the call."""
+    torch = pytest.importorskip("torch")
+    import diffquat.torch as dqt
+
+    q = torch.ones(2, 4)
+    for _ in range(2):
+        assert dqt.quaternion_multiply(q, q).shape == (2, 4)
+    with pytest.raises(ValueError, match=r"quaternion_multiply: expected batch shapes that broadcast"):
+        dqt.quaternion_multiply(q, torch.ones(3, 4))
+    with pytest.raises(ValueError, match=r"quaternion_multiply: expected q of shape \(\.\.\., 4\)"):
+        dqt.quaternion_multiply(q, torch.ones(2, 3))
+    with pytest.raises(TypeError, match=r"quaternion_multiply: expected q to be a torch\.Tensor"):
+        dqt.quaternion_multiply(q, q.numpy())
+    with pytest.raises(TypeError, match="real floating-point"):
+        dqt.quaternion_multiply(q, q.to(torch.complex64))
+    ints = torch.ones(2, 4, dtype=torch.int64)
+    default = torch.get_default_dtype()
+    try:
+        for dtype in (torch.float64, torch.float32):
+            torch.set_default_dtype(dtype)
+            assert dqt.quaternion_multiply(ints, ints).dtype == dtype
+    finally:
+        torch.set_default_dtype(default)

@@ -159,14 +159,22 @@ def _promote(a: torch.dtype, b: torch.dtype) -> torch.dtype:
     return promoted
 
 
-def _without_autocast(x: Tensor) -> contextlib.AbstractContextManager[Any]:
+# Whether autocast is on for any device (a private accessor, one call; torch builds without it: assumed
+# on, and the device's own flag read). Dynamo does not trace it: a capture reads the device's flag.
+_ANY_AUTOCAST = getattr(torch._C, "_is_any_autocast_enabled", lambda: True)
+
+
+def _without_autocast(x: Tensor) -> contextlib.AbstractContextManager[Any] | None:
     """Autocast off around the core: under ``torch.autocast`` its matrix products and solves would run
     in the autocast dtype (bfloat16 for a float32 input), and the backward of a float32 result would
-    then meet bfloat16 tensors. The Backend has already chosen the compute dtype."""
+    then meet bfloat16 tensors. The Backend has already chosen the compute dtype. None (no context)
+    outside autocast, told in eager calls by one look at every device's flag."""
+    if not (torch.compiler.is_compiling() or _ANY_AUTOCAST()):
+        return None
     device = x.device.type
     if torch.is_autocast_enabled(device):
         return torch.autocast(device, enabled=False)
-    return contextlib.nullcontext()
+    return None
 
 
 class _QuietTracer(warnings.catch_warnings):
@@ -183,6 +191,28 @@ def _static_shapes() -> contextlib.AbstractContextManager[Any]:
     return _QuietTracer() if tracing else contextlib.nullcontext()
 
 
+def _signature(fname: str, arrays: tuple[Any, ...]) -> tuple[Any, ...] | None:
+    """What decides the validation of an eager call (``Backend.validate`` remembers the passing ones):
+    the function's name and each argument's shape and dtype (None, or a Python number's type). None
+    under graph capture, where Dynamo traces the checks themselves and sizes may be symbolic or traced
+    tensors, and for any other argument (the checks then say what is wrong with it). A device is not
+    part of it: no check reads one."""
+    if torch.compiler.is_compiling() or is_tracing():  # type: ignore[no-untyped-call]
+        return None
+    if len(arrays) == 1:
+        (x,) = arrays
+        return (fname, x.shape, x.dtype) if isinstance(x, Tensor) else None
+    key: list[Any] = [fname]
+    for x in arrays:
+        if isinstance(x, Tensor):
+            key.append((x.shape, x.dtype))
+        elif x is None or type(x) is float or type(x) is int:  # not bool, which the checks refuse
+            key.append(x if x is None else type(x))
+        else:
+            return None
+    return tuple(key)
+
+
 _B = Backend(
     xp=torch,
     convert=_convert,
@@ -196,6 +226,7 @@ _B = Backend(
     guard=_without_autocast,
     static=_static_shapes,
     choose=choose,
+    signature=_signature,
 )
 
 

@@ -83,16 +83,6 @@ def componentwise() -> Iterator[None]:
         _FORCED.pop()
 
 
-def eager(x: Tensor) -> bool:
-    """Whether a call takes a map's eager form: everywhere but under graph capture (:func:`form`), and
-    where float32 matrix products are exact IEEE products (:func:`exact_products`)."""
-    return (
-        not _FORCED
-        and not (torch.compiler.is_compiling() or is_tracing())  # type: ignore[no-untyped-call]
-        and exact_products(x)
-    )
-
-
 # The eager forms contract with constant coefficient matrices (matmul, addmm). Where a user lowers the
 # precision of float32 products (torch.set_float32_matmul_precision("high"), common on GPUs: TF32 or
 # bf16 keeps 10 or 7 bits of each operand), those would lose about 3 digits: such calls take the
@@ -105,10 +95,11 @@ _MATMUL_BACKEND = {"cuda": "cuda", "cpu": "mkldnn"}
 def exact_products(x: Tensor) -> bool:
     """Whether float32 matrix products on ``x``'s device are exact IEEE products (the default), or
     ``x`` is not float32. Unknown devices and torch builds without the setting count as exact."""
-    backend = _MATMUL_BACKEND.get(x.device.type)
-    if x.dtype != torch.float32 or backend is None or _PRECISION is None:
+    if x.dtype != torch.float32 or _PRECISION is None:
         return True
-    return _PRECISION(backend, "matmul") in ("none", "ieee")
+    # ``is_cpu`` first: reading ``device`` makes a device object, a third of this function's cost
+    backend = "mkldnn" if x.is_cpu else _MATMUL_BACKEND.get(x.device.type)
+    return backend is None or _PRECISION(backend, "matmul") in ("none", "ieee")
 
 
 # On the CPU, the eager forms that contract an outer product with a constant matrix write an (N, 16)
@@ -124,21 +115,27 @@ def few_rows(name: str, x: Tensor) -> bool:
     """Whether the eager form of the map ``name`` pays on ``x`` (rows: ``x``'s batch elements), as
     above: the maps in ``_MEMORY_BOUND`` on the CPU below :data:`COMPONENTWISE_FROM_ROWS`, every other
     map and device always. Reads static sizes only."""
-    if name not in _MEMORY_BOUND or x.device.type != "cpu":
+    if name not in _MEMORY_BOUND or not x.is_cpu:
         return True
     return x.numel() < COMPONENTWISE_FROM_ROWS * x.shape[-1]
 
 
 def choose(core_fn: Callable[..., Any], x: Tensor) -> Callable[..., Any]:
     """The function a call of the core function ``core_fn`` on ``x`` runs: its eager form where it has
-    one (``_core.EAGER_FORMS``) and the call is eager, else ``core_fn`` itself; and ``core_fn`` in
-    forward mode (an open dual level) where the eager form has a rule of its own
-    (:func:`eager_form_with_rule`), which is for reverse mode only: the componentwise form's autodiff
-    is exact to every order."""
+    one (``_core.EAGER_FORMS``) and the call is eager (everywhere but under graph capture,
+    :func:`form`, and where float32 matrix products are exact IEEE products, :func:`exact_products`),
+    else ``core_fn`` itself; and ``core_fn`` in forward mode (an open dual level) where the eager form
+    has a rule of its own (:func:`eager_form_with_rule`), which is for reverse mode only: the
+    componentwise form's autodiff is exact to every order. The cheap refusals come first: this runs
+    on every call, and a capture decides here without reading the table of eager forms (no guard on
+    it in a compiled graph)."""
+    if _FORCED or torch.compiler.is_compiling() or is_tracing():  # type: ignore[no-untyped-call]
+        return core_fn
     name = core_fn.__name__
-    if eager(x) and few_rows(name, x) and not (name in _WITH_RULE and forward_ad._current_level >= 0):
-        return EAGER_FORMS.get(name, core_fn)
-    return core_fn
+    fast = EAGER_FORMS.get(name)
+    if fast is None or (name in _WITH_RULE and forward_ad._current_level >= 0):
+        return core_fn
+    return fast if exact_products(x) and few_rows(name, x) else core_fn
 
 
 # The core functions whose eager form has its own reverse rule (eager_form_with_rule).
