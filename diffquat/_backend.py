@@ -104,7 +104,6 @@ def nonfinite_rows(xp: Any, out: Any, arrays: list[tuple[Any, tuple[int, ...]]])
     good rows, NaN or 0 on the bad ones. Two or three operations per input in eager torch (a product,
     a sum, the addition; a view where the trailing ranks differ), where a selection took nine
     (``isfinite``'s four, the NaN constant, the mask's view, the ``where``)."""
-    drop = getattr(xp, "detach", None) or getattr(xp, "stop_gradient", None)  # _core.cancelling_factor
     batch_rank = 0
     for x, trailing in arrays:
         batch_rank = max(batch_rank, x.ndim - len(trailing))
@@ -112,7 +111,7 @@ def nonfinite_rows(xp: Any, out: Any, arrays: list[tuple[Any, tuple[int, ...]]])
     acc = None
     for x, trailing in arrays:
         # _core.zero_or_nan, its sum kept as unit axes where the trailing ranks agree
-        z = (x if drop is None else drop(x)) * 0.0
+        z = _core.cancelling_factor(xp, x) * 0.0
         if trailing:
             z = xp.sum(z, axis=tuple(range(-len(trailing), 0)), keepdims=len(trailing) == out_trailing)
         if len(trailing) != out_trailing:

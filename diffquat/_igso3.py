@@ -25,7 +25,9 @@ is about ``-5e8`` at ``omega = pi, sigma = 1e-4``), with no truncated series and
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -35,6 +37,7 @@ from ._core import (
     NONFINITE_BY_ARITHMETIC,
     Conversion,
     cancelling_factor,
+    constants,
     matrix_to_quaternion,
     op,
     small_matmul,
@@ -190,17 +193,21 @@ def _eager(xp: Any, like: Any) -> bool:
     return type(like) is tensor and not (xp.compiler.is_compiling() or xp.jit.is_tracing())
 
 
-_KEPT: dict[tuple[Any, ...], Any] = {}
+@functools.cache
+def _maker(values: Any) -> Callable[[], tuple[Any, ...]]:
+    """The maker, for ``_core.constants``, of the constant ``values`` (nested tuples of numbers; a
+    number: a 0-d array), as floats: one per distinct ``values``, so each is made once per dtype and
+    device and kept where ``constants`` keeps its own (not inside a ``torch.func`` transform)."""
+
+    def floats(v: Any) -> Any:
+        return [floats(u) for u in v] if isinstance(v, tuple) else float(v)
+
+    return lambda: (floats(values),)
 
 
 def _kept(xp: Any, values: Any, like: Any) -> Any:
-    """The constant ``values`` (nested tuples of numbers; a number: a 0-d array) in ``like``'s dtype and
-    device, made once."""
-    key = (values, like.dtype, like.device)
-    out = _KEPT.get(key)
-    if out is None:
-        out = _KEPT[key] = xp.tensor(values, dtype=like.dtype, device=like.device)
-    return out
+    """The constant ``values`` in ``like``'s dtype and device, made once (``_core.constants``)."""
+    return constants(xp, like, _maker(values))[0]
 
 
 def _number(xp: Any, value: float, like: Any) -> Any:

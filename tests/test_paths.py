@@ -492,6 +492,9 @@ def test_the_nonfinite_row_rule_holds_under_inductor_and_xla() -> None:
         np.testing.assert_array_equal(got[[0, 2]], out[[0, 2]], err_msg=name)
 
 
+_SIGMA = torch.tensor([0.05, 0.3, 1.0, 2.0, 30.0], dtype=torch.float64)
+
+
 @pytest.mark.parametrize(
     "name, size",
     [
@@ -499,20 +502,26 @@ def test_the_nonfinite_row_rule_holds_under_inductor_and_xla() -> None:
         ("matrix_to_quaternion", (3, 3)),
         ("rotation_6d_to_matrix", 6),
         ("matrix_fisher_log_normalizer", (3, 3)),
+        ("igso3_log_density", ()),
+        ("igso3_angle_cdf", ()),
     ],
 )
 def test_constants_made_inside_a_transform_do_not_escape_it(name: str, size: Any) -> None:
     """The eager forms keep their constant tensors (``_core.constants``); one first made inside a
     ``torch.func`` transform (a rule's cotangent under ``jacrev(jacrev)``) is a tensor of that
     transform's level, and kept, it broke every later call outside it (an internal assert in
-    functorch, met by the 10D head's test run alone). Made there, it is not kept."""
+    functorch, met by the 10D head's test run alone). Made there, it is not kept. The IGSO(3) rows
+    (angles, at fixed sigma) keep theirs through the same cache."""
     from torch._C._functorch import is_functorch_wrapped_tensor
 
     from diffquat import _core
 
-    fn = getattr(dq, name)
+    public = getattr(dq, name)
+    fn = (lambda y: public(y, _SIGMA)) if name.startswith("igso3") else public
     shape = (5, *size) if isinstance(size, tuple) else (5, size)
     x = torch.tensor(np.random.default_rng(7).normal(size=shape))
+    if name.startswith("igso3"):
+        x = x.abs()
     _core._CONSTANTS.clear()
     torch.func.jacrev(torch.func.jacrev(lambda y: fn(y).sum()))(x)
     assert not any(is_functorch_wrapped_tensor(c) for v in _core._CONSTANTS.values() for c in v)
