@@ -373,14 +373,10 @@ def eager_form_with_rule(
     mode (an open dual level: ``jvp``, ``jacfwd``, ``hessian``) :func:`choose` takes ``core_fn``
     itself, whose autodiff is exact to every order (and the Backend then applies its non-finite rule
     as after ``core_fn``). Named ``<core_fn>_eager``, the name the Backend reads."""
-    leans = {k: _lean(forward, cotangent, core_fn.__name__) for k, (forward, cotangent) in rules.items()}
-    _WITH_RULE.add(core_fn.__name__)
+    steps = {k: lean_step(forward, cotangent, core_fn.__name__) for k, (forward, cotangent) in rules.items()}
 
     def eager_form(xp: Any, x: Tensor, **options: Any) -> Tensor:
-        k = key(**options)
-        if form(x) == "rule":
-            return leans[k](x)[0]
-        return rules[k][0](torch, x)[0]
+        return steps[key(**options)](x)[0]
 
     eager_form.__name__ = f"{core_fn.__name__}_eager"
     return eager_form
